@@ -1,0 +1,42 @@
+"""Strict test environment (STYLE.md): strict dtype promotion, rank promotion raises,
+warnings are errors (pyproject), shape annotations checked at run time (addopts)."""
+
+import os
+import pathlib
+
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+SHARED_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture
+def getkey():
+    """A fresh PRNG key per call, deterministic per test."""
+    keys = iter(jax.random.split(jax.random.key(0), 10_000))
+    return lambda: next(keys)
+
+
+@pytest.fixture
+def x64():
+    """Run the test body with float64 enabled, restoring the flag afterwards."""
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def shared_data():
+    if not SHARED_DATA.is_dir():
+        pytest.skip("../shared/data is not present")
+    return SHARED_DATA

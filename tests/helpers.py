@@ -1,0 +1,25 @@
+"""Test helpers shared across test modules."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_allclose(a, b, *, rtol=1e-5, atol=1e-6) -> bool:
+    leaves_a, tree_a = jax.tree_util.tree_flatten(a)
+    leaves_b, tree_b = jax.tree_util.tree_flatten(b)
+    if tree_a != tree_b:
+        return False
+    return all(np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol) for x, y in zip(leaves_a, leaves_b))
+
+
+def finite_difference_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central differences in float64 of f: R^n -> R^m (numpy in, numpy out)."""
+    x = np.asarray(x, np.float64)
+    cols = []
+    for i in range(x.size):
+        e = np.zeros_like(x).reshape(-1)
+        e[i] = h
+        e = e.reshape(x.shape)
+        cols.append((np.asarray(f(jnp.asarray(x + e))) - np.asarray(f(jnp.asarray(x - e)))).reshape(-1) / (2 * h))
+    return np.stack(cols, axis=-1)
