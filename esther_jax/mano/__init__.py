@@ -1,0 +1,39 @@
+"""MANO hand model: arrays, parameters, forward kinematics, conventions, I/O.
+
+Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_joints`,
+`with_shape`, `with_pose`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
+`save_mano_pkl`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
+`transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`, `export_mesh`,
+`anatomical_frames`, `JOINT_LIMITS`, and the joint-order constants.
+"""
+
+from .anatomy import JOINT_LIMITS as JOINT_LIMITS
+from .anatomy import anatomical_frames as anatomical_frames
+from .anatomy import anatomical_to_hand_pose as anatomical_to_hand_pose
+from .anatomy import hand_pose_to_anatomical as hand_pose_to_anatomical
+from .constants import FINGERTIP_IDS_MANOPTH as FINGERTIP_IDS_MANOPTH
+from .constants import FINGERTIP_IDS_SMPLX as FINGERTIP_IDS_SMPLX
+from .constants import KEYPOINT_FROM_MANO as KEYPOINT_FROM_MANO
+from .constants import KEYPOINT_NAMES as KEYPOINT_NAMES
+from .constants import MANO_JOINT_NAMES as MANO_JOINT_NAMES
+from .constants import MANO_PARENTS as MANO_PARENTS
+from .conventions import from_smplx as from_smplx
+from .conventions import mirror_params as mirror_params
+from .conventions import mirror_points as mirror_points
+from .conventions import to_smplx as to_smplx
+from .conventions import transform_params as transform_params
+from .export import export_mesh as export_mesh
+from .io import ManoFileError as ManoFileError
+from .io import load_builtin as load_builtin
+from .io import load_mano_pkl as load_mano_pkl
+from .io import save_mano_pkl as save_mano_pkl
+from .kinematics import forward as forward
+from .kinematics import forward_joints as forward_joints
+from .kinematics import rest_joints as rest_joints
+from .kinematics import with_pose as with_pose
+from .kinematics import with_shape as with_shape
+from .model import ManoModel as ManoModel
+from .model import ManoOutput as ManoOutput
+from .model import ManoParams as ManoParams
+from .pca import hand_pose_to_pca as hand_pose_to_pca
+from .pca import pca_to_hand_pose as pca_to_hand_pose
