@@ -450,3 +450,10 @@ def test_export(right, tmp_path, suffix):
     np.testing.assert_allclose(np.asarray(loaded.vertices), np.asarray(out.vertices), atol=1e-6)
     with pytest.raises(ValueError, match="unsupported"):
         mano.export_mesh(right, out, tmp_path / "hand.xyz")
+
+
+def test_forward_batch_equals_vmap_for_any_batch_size(right):
+    batch = stack([random_params(s) for s in range(70)])  # not a multiple of the chunk
+    reference = jax.vmap(mano.forward, in_axes=(None, 0))(right, batch)
+    chunked = eqx.filter_jit(mano.forward_batch)(right, batch, chunk=16)
+    assert tree_allclose(chunked, reference, atol=1e-6)

@@ -1,6 +1,6 @@
 """MANO hand model: arrays, parameters, forward kinematics, conventions, I/O.
 
-Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_joints`,
+Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch`, `forward_joints`,
 `with_shape`, `with_pose`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
 `save_mano_pkl`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
 `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`, `export_mesh`,
@@ -28,6 +28,7 @@ from .io import load_builtin as load_builtin
 from .io import load_mano_pkl as load_mano_pkl
 from .io import save_mano_pkl as save_mano_pkl
 from .kinematics import forward as forward
+from .kinematics import forward_batch as forward_batch
 from .kinematics import forward_joints as forward_joints
 from .kinematics import rest_joints as rest_joints
 from .kinematics import with_pose as with_pose

@@ -1,0 +1,52 @@
+"""Shared timing helpers for the benchmark scripts (compile apart, medians of rounds)."""
+
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
+
+
+def compile_seconds(fn: Callable, *args) -> float:
+    """Wall time of the first call (trace + compile + one run)."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - t0
+
+
+def median_seconds(fn: Callable, *args, min_time: float = 0.2, rounds: int = 5) -> float:
+    """Median over `rounds` of the mean time per call, each round lasting >= min_time."""
+    jax.block_until_ready(fn(*args))
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    one = max(time.perf_counter() - t0, 1e-6)
+    reps = max(1, int(min_time / one))
+    per_round = []
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            out = fn(*args)
+        jax.block_until_ready(out)
+        per_round.append((time.perf_counter() - t0) / reps)
+    return statistics.median(per_round)
+
+
+def interleaved(candidates: dict[str, Callable[[], object]], rounds: int = 5, min_time: float = 0.2) -> dict[str, float]:
+    """Median seconds per call of several zero-argument callables, timed round robin so
+    that machine noise hits all of them alike (the peers' timings in reference/performance.md
+    were taken the same way)."""
+    reps = {}
+    for name, fn in candidates.items():
+        jax.block_until_ready(fn())
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        reps[name] = max(1, int(min_time / max(time.perf_counter() - t0, 1e-6)))
+    samples: dict[str, list[float]] = {name: [] for name in candidates}
+    for _ in range(rounds):
+        for name, fn in candidates.items():
+            t0 = time.perf_counter()
+            for _ in range(reps[name]):
+                out = fn()
+            jax.block_until_ready(out)
+            samples[name].append((time.perf_counter() - t0) / reps[name])
+    return {name: statistics.median(s) for name, s in samples.items()}
