@@ -293,12 +293,20 @@ def test_every_joint_bends_cleanly(right, joint):
     assert abs(volume_ratio - 1.0) < 0.03
 
 
+def test_replace_recomputes_derived_fields(right):
+    moved = right.replace(v_template=right.v_template + 0.01)
+    np.testing.assert_allclose(np.asarray(moved.joint_template), np.asarray(right.joint_template) + 0.01, atol=1e-6)
+    assert right.replace(posedirs=jnp.zeros_like(right.posedirs)).pose_feature_ids == ()
+    with pytest.raises(TypeError, match="unknown"):
+        right.replace(colour=1)
+
+
 def test_pose_blend_shapes_restore_volume(right):
     frames = mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right)
     angles = np.zeros((15, 3), np.float32)
     angles[[1, 4, 10, 7], 0] = np.deg2rad(100.0)  # PIP joints
     params = eqx.tree_at(lambda p: p.hand_pose, mano.ManoParams.zeros(), mano.anatomical_to_hand_pose(jnp.asarray(angles), frames))
-    no_correctives = eqx.tree_at(lambda m: m.posedirs, right, jnp.zeros_like(right.posedirs))
+    no_correctives = right.replace(posedirs=jnp.zeros_like(right.posedirs))
     faces = np.asarray(right.faces)
     rest = mano.export.to_trimesh(mano.forward(right, mano.ManoParams.zeros()).vertices, faces).volume
     with_c = mano.export.to_trimesh(mano.forward(right, params).vertices, faces).volume
@@ -354,7 +362,7 @@ def test_pickle_round_trip(right, tmp_path):
 
 
 def test_left_shapedirs_bug_is_fixed_and_recorded(left, tmp_path):
-    buggy = eqx.tree_at(lambda m: m.shapedirs, left, left.shapedirs * jnp.asarray([-1.0, 1.0, 1.0])[None, :, None])
+    buggy = left.replace(shapedirs=left.shapedirs * jnp.asarray([-1.0, 1.0, 1.0])[None, :, None])
     path = mano.save_mano_pkl(buggy, tmp_path / "MANO_LEFT.pkl")
     fixed = mano.load_mano_pkl(path)
     assert fixed.side == "left" and bool(fixed.left_shapedirs_fixed)

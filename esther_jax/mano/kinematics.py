@@ -91,9 +91,11 @@ def _pad_betas(model: ManoModel, betas: Float[Array, "betas"]) -> Float[Array, "
     return jnp.pad(betas, (0, n - betas.shape[0]))
 
 
-def _pose_features(posed: PosedHand) -> Float[Array, "135"]:
+def _pose_features(model: ManoModel, posed: PosedHand) -> Float[Array, "active"]:
+    """MANO's pose features vec(R_j - I) of joints 1..15 (row-major), restricted to the
+    ones the model's corrective blend shapes use."""
     eye = jnp.eye(3, dtype=posed.local_rotations.dtype)
-    return (posed.local_rotations[1:] - eye[None]).reshape(135)
+    return (posed.local_rotations[1:] - eye[None]).reshape(135)[jnp.asarray(model.pose_feature_ids, jnp.int32)]
 
 
 def _skin(
@@ -119,8 +121,10 @@ def _rest_vertices(model: ManoModel, vertex_ids, shaped: ShapedHand, posed: Pose
     """Shaped and pose-corrected rest vertices (all when `vertex_ids` is None)."""
     take = (lambda a: a) if vertex_ids is None else (lambda a: a[vertex_ids])
     v = take(model.v_template) + jnp.einsum("vcb,b->vc", take(model.shapedirs), shaped.betas)
-    pose_dirs = take(model.posedirs)
-    return v + (pose_dirs.reshape(-1, 135) @ _pose_features(posed)).reshape(-1, 3)
+    if not model.pose_feature_ids:  # a model without corrective blend shapes
+        return v
+    basis = take(model.pose_basis)
+    return v + (basis.reshape(-1, basis.shape[-1]) @ _pose_features(model, posed)).reshape(-1, 3)
 
 
 def _keypoints(posed: PosedHand, tips: Float[Array, "5 3"]) -> Float[Array, "21 3"]:

@@ -6,7 +6,9 @@ user's official file) and is data, not weights: pass it beside a network or fit.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .constants import MANO_PARENTS, NUM_BETAS, NUM_JOINTS, NUM_POSE_FEATURES
@@ -45,6 +47,11 @@ class ManoModel(eqx.Module):
     """`J_regressor @ v_template`, computed at construction (the regressor folded in)."""
     joint_shapedirs: Float[Array, "16 3 betas"]
     """`J_regressor @ shapedirs`, computed at construction."""
+    pose_basis: Float[Array, "verts 3 active"]
+    """The columns of `posedirs` that are not identically zero (computed at construction;
+    all 135 for the official model, fewer for models with local correctives)."""
+    pose_feature_ids: tuple[int, ...] = eqx.field(static=True)
+    """Which of the 135 pose features `pose_basis` uses."""
     parents: tuple[int, ...] = eqx.field(static=True)
     """Parent of each joint; -1 for the wrist (MANO's tree)."""
 
@@ -79,6 +86,8 @@ class ManoModel(eqx.Module):
         self.parents = tuple(int(p) for p in parents)
         self.joint_template = self.J_regressor @ self.v_template
         self.joint_shapedirs = jnp.einsum("jv,vcb->jcb", self.J_regressor, self.shapedirs)
+        self.pose_feature_ids = _active_columns(self.posedirs)
+        self.pose_basis = self.posedirs[:, :, jnp.asarray(self.pose_feature_ids, jnp.int32)]
 
     def __check_init__(self):
         V = self.v_template.shape[0]
@@ -100,6 +109,22 @@ class ManoModel(eqx.Module):
         if len(self.parents) != NUM_JOINTS:
             raise ValueError(f"ManoModel.parents has {len(self.parents)} entries, expected {NUM_JOINTS}")
 
+    def replace(self, **changes) -> "ManoModel":
+        """A copy with some source arrays replaced and the derived ones recomputed (use
+        this rather than `eqx.tree_at`, which would leave `joint_template` & co. stale)."""
+        fields = dict(
+            v_template=self.v_template, shapedirs=self.shapedirs, posedirs=self.posedirs,
+            J_regressor=self.J_regressor, weights=self.weights, faces=self.faces,
+            fingertip_ids=self.fingertip_ids, hands_components=self.hands_components,
+            hands_mean=self.hands_mean, is_right=self.is_right,
+            left_shapedirs_fixed=self.left_shapedirs_fixed, parents=self.parents,
+        )  # fmt: skip
+        unknown = set(changes) - set(fields)
+        if unknown:
+            raise TypeError(f"ManoModel.replace got unknown fields {sorted(unknown)}")
+        fields.update(changes)
+        return ManoModel(**fields)
+
     @property
     def num_vertices(self) -> int:
         return self.v_template.shape[0]
@@ -112,6 +137,16 @@ class ManoModel(eqx.Module):
     def side(self) -> str:
         """'right' or 'left' (needs a concrete model, not a traced one)."""
         return "right" if bool(self.is_right) else "left"
+
+
+def _active_columns(posedirs: Array) -> tuple[int, ...]:
+    """Indices of the pose features with a non-zero blend shape (all of them when the
+    arrays are traced, i.e. when a model is built inside a transformation)."""
+    try:
+        dense = np.asarray(posedirs)
+    except jax.errors.TracerArrayConversionError:
+        return tuple(range(NUM_POSE_FEATURES))
+    return tuple(int(i) for i in np.flatnonzero(np.any(dense != 0, axis=(0, 1))))
 
 
 class ManoParams(eqx.Module):
