@@ -1,0 +1,193 @@
+"""Hand-following crop cameras, image warps, fisheye -> pinhole rectification and
+Plucker rays (the detect-then-crop convention of the paper, sections 3.4-3.5).
+
+A crop is a virtual pinhole camera `crop_camera` (S x S pixels) plus its rotation
+`R_cam_crop` relative to the source camera (identity for axis-aligned crops). Pixel
+convention as in `cameras`: centres at integers, so an image crop of side b pixels
+resized to S maps `u -> s (u - c_box + b / 2) - 1/2` with `s = S / b` (the +0.5 rule).
+"""
+
+import typing
+
+import cv2
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._math import cross, safe_normalize
+from .cameras import AbstractCamera, PinholeCamera
+
+DEFAULT_CROP_SIZE = 224
+DEFAULT_BOX_PADDING = 1.25
+"""Crop side = padding x the longer side of the hand box (context around the hand)."""
+
+
+class Crop(eqx.Module):
+    """A square hand crop: its virtual pinhole camera and its rotation in the source camera."""
+
+    camera: PinholeCamera
+    """Intrinsics of the S x S crop image (pixels)."""
+    R_cam_crop: Float[Array, "3 3"]
+    """Rotation of the crop camera in the source camera frame (identity when axis-aligned)."""
+
+
+def square_box(box: Float[Array, "4"], padding: float = DEFAULT_BOX_PADDING) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+    """Centre (px) and side b (px) of the square crop window around a box (x0, y0, x1, y1)."""
+    centre = 0.5 * (box[:2] + box[2:])
+    side = padding * jnp.maximum(box[2] - box[0], box[3] - box[1])
+    return centre, side
+
+
+def crop_camera(
+    camera: PinholeCamera, box: Float[Array, "4"], size: int = DEFAULT_CROP_SIZE, padding: float = DEFAULT_BOX_PADDING
+) -> Crop:
+    """The axis-aligned S x S crop of a pinhole image around a hand box.
+
+    Projecting with the returned camera equals cropping the image to the square window
+    and resizing it to S (`crop_affine` + `cv2.warpAffine` do exactly that).
+    """
+    centre, side = square_box(box, padding)
+    s = size / side
+    cam = PinholeCamera(
+        camera.fx * s,
+        camera.fy * s,
+        s * (camera.cx - centre[0] + 0.5 * side) - 0.5,
+        s * (camera.cy - centre[1] + 0.5 * side) - 0.5,
+        size,
+        size,
+    )
+    return Crop(camera=cam, R_cam_crop=jnp.eye(3, dtype=cam.fx.dtype))
+
+
+def crop_affine(box: Float[Array, "4"], size: int = DEFAULT_CROP_SIZE, padding: float = DEFAULT_BOX_PADDING) -> np.ndarray:
+    """2x3 matrix M (full-image pixel -> crop pixel) for `cv2.warpAffine(image, M, (S, S))`."""
+    centre, side = (np.asarray(x, np.float64) for x in square_box(jnp.asarray(box), padding))
+    s = size / float(side)
+    return np.array([[s, 0.0, s * (0.5 * side - centre[0]) - 0.5], [0.0, s, s * (0.5 * side - centre[1]) - 0.5]])
+
+
+def warp_crop(image: np.ndarray, box, size: int = DEFAULT_CROP_SIZE, padding: float = DEFAULT_BOX_PADDING) -> np.ndarray:
+    """Crop and resize an image around a box (bilinear, black outside the image)."""
+    M = crop_affine(jnp.asarray(box, jnp.result_type(float)), size, padding)
+    return cv2.warpAffine(image, M, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+# ----------------------------------------------------------------------------- fisheye rectification
+
+RectificationStrategy = typing.Literal["offbb120", "offbb90", "offbb150", "hc"]
+RECTIFICATION_STRATEGIES: tuple[str, ...] = typing.get_args(RectificationStrategy)
+
+
+def _look_at_rotation(direction: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """Rotation whose z column is `direction`, keeping the source's x axis as horizontal
+    as possible (the crop is rolled as little as possible)."""
+    z = safe_normalize(direction)
+    x = cross(jnp.asarray([0.0, 1.0, 0.0], z.dtype), z)
+    x = safe_normalize(x)
+    y = cross(z, x)
+    return jnp.stack([x, y, z], axis=1)
+
+
+def _box_outline(box: Float[Array, "4"], samples: int = 8) -> Float[Array, "n 2"]:
+    t = jnp.linspace(0.0, 1.0, samples)
+    x0, y0, x1, y1 = box[0], box[1], box[2], box[3]
+    top = jnp.stack([x0 + t * (x1 - x0), jnp.full_like(t, y0)], -1)
+    bottom = jnp.stack([x0 + t * (x1 - x0), jnp.full_like(t, y1)], -1)
+    left = jnp.stack([jnp.full_like(t, x0), y0 + t * (y1 - y0)], -1)
+    right = jnp.stack([jnp.full_like(t, x1), y0 + t * (y1 - y0)], -1)
+    return jnp.concatenate([top, bottom, left, right])
+
+
+def rectified_crop(
+    camera: AbstractCamera,
+    box: Float[Array, "4"],
+    strategy: str = "offbb120",
+    size: int = DEFAULT_CROP_SIZE,
+    padding: float = DEFAULT_BOX_PADDING,
+) -> Crop:
+    """A pinhole crop of a (fisheye) camera around a hand box, for the four strategies of
+    the paper's appendix M.
+
+    - `offbb120` / `offbb90` / `offbb150`: the whole image is undistorted to an
+      axis-aligned wide pinhole of virtual focal 120 / 90 / 150 px (principal point at
+      the image centre, same size); the hand crop is taken from it as from any pinhole
+      image. The chain fisheye -> undistort -> crop -> resize is one crop camera.
+    - `hc`: a ray-aligned hand crop: the crop camera looks along the ray of the box
+      centre and its focal is chosen so the padded box just fills the crop.
+    """
+    outline = camera.unproject(_box_outline(box))  # rays of the box outline, camera frame
+    if strategy.startswith("offbb"):
+        focal = float(strategy[len("offbb"):])
+        wide = PinholeCamera(focal, focal, (camera.width - 1) / 2, (camera.height - 1) / 2, camera.width, camera.height)
+        projected = wide.project(outline)
+        wide_box = jnp.concatenate([projected.min(axis=0), projected.max(axis=0)])
+        return crop_camera(wide, wide_box, size, padding)
+    if strategy == "hc":
+        centre_ray = camera.unproject(0.5 * (box[:2] + box[2:]))
+        R = _look_at_rotation(centre_ray)
+        in_crop = outline @ R  # rays in the crop frame (R^T x)
+        tangent = jnp.abs(in_crop[:, :2] / in_crop[:, 2:3])
+        half_extent = padding * jnp.max(tangent)
+        focal = (size / 2) / half_extent
+        c = (size - 1) / 2
+        return Crop(camera=PinholeCamera(focal, focal, c, c, size, size), R_cam_crop=R)
+    raise ValueError(f"unknown rectification strategy {strategy!r}; choose one of {RECTIFICATION_STRATEGIES}")
+
+
+def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2"]:
+    """For every crop pixel, the source-image pixel to sample: `cv2.remap(image,
+    map[..., 0], map[..., 1], cv2.INTER_LINEAR)` renders the crop."""
+    S = crop.camera.width
+    v, u = jnp.meshgrid(jnp.arange(S, dtype=crop.camera.fx.dtype), jnp.arange(S, dtype=crop.camera.fx.dtype), indexing="ij")
+    rays_crop = crop.camera.unproject(jnp.stack([u, v], -1))
+    rays_cam = rays_crop @ crop.R_cam_crop.T
+    return camera.project(rays_cam)
+
+
+def remap_crop(image: np.ndarray, camera: AbstractCamera, crop: Crop) -> np.ndarray:
+    """Render a rectified crop from a source image (bilinear; black outside the image)."""
+    table = np.asarray(rectification_map(camera, crop), np.float32)
+    return cv2.remap(image, table[..., 0], table[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+# ----------------------------------------------------------------------------- Plucker rays
+
+
+def patch_centres(size: int, grid: int) -> Float[Array, "grid grid 2"]:
+    """Pixel coordinates (u, v) of the centres of a grid x grid patch tiling of an S x S crop."""
+    step = size / grid
+    c = (jnp.arange(grid, dtype=jnp.result_type(float)) + 0.5) * step - 0.5
+    v, u = jnp.meshgrid(c, c, indexing="ij")
+    return jnp.stack([u, v], -1)
+
+
+def plucker_rays(crop: Crop, T_rig_cam: Float[Array, "4 4"], grid: int) -> Float[Array, "grid grid 6"]:
+    """Plucker coordinates (unit direction d, moment m = o x d) in the rig frame of the
+    rays through the patch centres of a crop (grid = S for every pixel).
+
+    Args:
+        crop: the crop camera and its rotation in its source camera.
+        T_rig_cam: pose of the source camera in the rig frame.
+        grid: patches per side (S / patch size, e.g. 224 / 16 = 14).
+    """
+    uv = patch_centres(crop.camera.width, grid)
+    R_rig_crop = T_rig_cam[:3, :3] @ crop.R_cam_crop
+    directions = safe_normalize(crop.camera.unproject(uv) @ R_rig_crop.T)
+    origin = jnp.broadcast_to(T_rig_cam[:3, 3], directions.shape)
+    return jnp.concatenate([directions, cross(origin, directions)], axis=-1)
+
+
+__all__ = [
+    "Crop",
+    "RECTIFICATION_STRATEGIES",
+    "crop_affine",
+    "crop_camera",
+    "patch_centres",
+    "plucker_rays",
+    "rectification_map",
+    "rectified_crop",
+    "remap_crop",
+    "square_box",
+    "warp_crop",
+]
