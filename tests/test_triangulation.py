@@ -121,7 +121,7 @@ def test_degenerate_inputs_are_invalid_and_finite():
     assert int(nan_view.num_views) == 1
 
 
-@pytest.mark.parametrize("weights", [[1.0, 0.0], [0.0, 0.0], [1.0, 1e-4], [1.0, 1.0]])
+@pytest.mark.parametrize("weights", [[1.0, 0.0], [0.0, 0.0], [1.0, 1e-4], [1.0, 0.03], [1.0, 1.0]])
 def test_gradients_are_finite_as_weights_vanish(weights):
     rig = cameras.rig_preset("esther")
     uv = project_rig(rig, np.array([[0.02, 0.05, 0.4]]))[0]
@@ -155,6 +155,19 @@ def test_jit_vmap_agree_with_plain_calls():
     np.testing.assert_allclose(np.asarray(batched(rig, uv, w).point), plain, atol=1e-5)
     frames = jax.vmap(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)), in_axes=(None, 0, 0))
     np.testing.assert_allclose(np.asarray(frames(rig, uv.reshape(2, 4, 2, 2), w.reshape(2, 4, 2)).point).reshape(8, 3), plain, atol=1e-5)
+
+
+def test_triangulate_batch_equals_nested_vmaps():
+    rig = cameras.rig_preset("esther")
+    rng = np.random.default_rng(5)
+    uv = jnp.asarray(project_rig(rig, hand_points(3 * 21, rng)).reshape(3, 21, 2, 2) + rng.normal(size=(3, 21, 2, 2)), jnp.float32)
+    w = jnp.asarray(rng.uniform(0.3, 1, size=(3, 21, 2)), jnp.float32)
+    nested = jax.vmap(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)), in_axes=(None, 0, 0))(rig, uv, w)
+    for chunk in (8, 1000):
+        got = triangulation.triangulate_batch(rig.cameras, rig.T_rig_cams, uv, w, chunk=chunk)
+        assert got.point.shape == (3, 21, 3) and got.residual_px.shape == (3, 21, 2)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(nested)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=2e-5)
 
 
 def test_bad_shapes_are_named():
