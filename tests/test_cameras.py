@@ -243,3 +243,27 @@ def test_unreadable_rig_files(tmp_path):
         StereoRig.from_json(tmp_path / "rig.json")
     with pytest.raises(ValueError, match="unknown rig preset"):
         cameras.rig_preset("kinect")
+
+
+@pytest.mark.parametrize("preset", ["hot3d_aria", "hot3d_quest3"])
+def test_fisheye624_matches_projectaria_tools_on_random_points(preset, x64):
+    """Live oracle: `pip install --no-deps projectaria-tools==2.3.0` (skipped when absent)."""
+    calibration = pytest.importorskip("projectaria_tools.core.calibration")
+    from projectaria_tools.core.sophus import SE3
+
+    for cam in (cameras.rig_preset(preset).left, cameras.rig_preset(preset).right):
+        params = np.asarray(cam.params, np.float64)
+        aria_params = np.concatenate([params[:1], params[2:]])  # single focal (fx == fy in the presets)
+        ref = calibration.CameraCalibration(
+            "cam", calibration.CameraModelType.FISHEYE624, aria_params, SE3.from_matrix(np.eye(4)),
+            cam.width, cam.height, None, float(cam.max_angle), "serial",
+        )  # fmt: skip
+        points = random_points_in_view(cam, 100, np.random.default_rng(7))
+        ours = np.asarray(cam.project(jnp.asarray(points)))
+        theirs = np.stack([ref.project_no_checks(p).reshape(2) for p in points])
+        np.testing.assert_allclose(ours, theirs, atol=1e-8)
+        rays = np.asarray(cam.unproject(jnp.asarray(theirs)))
+        their_rays = np.stack([ref.unproject_no_checks(uv).reshape(3) for uv in theirs])
+        np.testing.assert_allclose(rays, their_rays / their_rays[:, 2:3], atol=1e-9)
+        visible = np.asarray(cam.is_visible(jnp.asarray(points)))
+        assert np.all(visible == np.array([ref.project(p) is not None for p in points]))
