@@ -1,0 +1,1 @@
+"""Data: clip folders (I/O of the formats in ARCHITECTURE.md)."""

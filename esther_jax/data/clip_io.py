@@ -1,0 +1,128 @@
+"""Reading and writing clip folders (ARCHITECTURE.md, "File formats").
+
+    clip/
+      rig.json, meta.json
+      hands/<right|left>/keypoints.npz   uv [D,T,2,21,2], conf [D,T,2,21], box [D,T,2,4], box_score [D,T,2]
+      hands/<side>/gt.npz                global_orient [T,3], hand_pose [T,15,3], betas [10], transl [T,3],
+                                         joints [T,21,3], onscreen [T] (vertices [T,V,3] optional)
+    labels/<clip>/hands/<side>/labels.npz  the gt.npz keys + valid [T], residual_px [T]
+
+Every loader validates keys, shapes and values and says what is wrong with a file
+(missing, truncated, not an npz, wrong shape, NaN); writers are atomic.
+"""
+
+import json
+import pathlib
+import zipfile
+
+import numpy as np
+
+SIDES = ("right", "left")
+
+_HAND_KEYS = {
+    "global_orient": ("T", 3),
+    "hand_pose": ("T", 15, 3),
+    "betas": (10,),
+    "transl": ("T", 3),
+    "joints": ("T", 21, 3),
+    "onscreen": ("T",),
+}
+_LABEL_KEYS = {**_HAND_KEYS, "valid": ("T",), "residual_px": ("T",)}
+_KEYPOINT_KEYS = {"uv": ("D", "T", 2, 21, 2), "conf": ("D", "T", 2, 21), "box": ("D", "T", 2, 4), "box_score": ("D", "T", 2)}
+SCHEMAS = {"gt": _HAND_KEYS, "labels": _LABEL_KEYS, "keypoints": _KEYPOINT_KEYS}
+_NAN_ALLOWED = {"keypoints": {"uv", "box"}}
+
+
+class ClipFormatError(ValueError):
+    """A clip file is missing, unreadable or does not follow the clip format."""
+
+
+def save_npz(path: str | pathlib.Path, **arrays) -> pathlib.Path:
+    """Write a compressed npz atomically (a temporary file, then a rename)."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
+    tmp.replace(path)
+    return path
+
+
+def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
+    """Load and validate one hand file of `kind` 'gt', 'labels' or 'keypoints'."""
+    path = pathlib.Path(path)
+    schema = SCHEMAS[kind]
+    if not path.is_file():
+        raise ClipFormatError(f"{path} does not exist")
+    try:
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as err:
+        raise ClipFormatError(f"{path} is truncated or not an npz file ({type(err).__name__}: {err})") from err
+    missing = [k for k in schema if k not in arrays]
+    if missing:
+        raise ClipFormatError(f"{path}: keys {missing} are missing for a {kind} file (found {sorted(arrays)})")
+    sizes: dict[str, int] = {}
+    for key, spec in schema.items():
+        shape = arrays[key].shape
+        if len(shape) != len(spec):
+            raise ClipFormatError(f"{path}: {key} has shape {shape}, expected {_format(spec)}")
+        for dim, want in zip(shape, spec):
+            if isinstance(want, str):
+                if sizes.setdefault(want, dim) != dim:
+                    raise ClipFormatError(f"{path}: {key} has shape {shape}; {want} is {sizes[want]} elsewhere in the file")
+            elif dim != want:
+                raise ClipFormatError(f"{path}: {key} has shape {shape}, expected {_format(spec)}")
+        if arrays[key].dtype.kind == "f" and key not in _NAN_ALLOWED.get(kind, ()) and not np.all(np.isfinite(arrays[key])):
+            raise ClipFormatError(f"{path}: {key} contains NaN or infinite values")
+    for key in ("onscreen", "valid"):
+        if key in arrays:
+            arrays[key] = arrays[key].astype(bool)
+    return arrays
+
+
+def _format(spec) -> str:
+    return "[" + ", ".join(str(s) for s in spec) + "]"
+
+
+def read_meta(clip_dir: str | pathlib.Path) -> dict:
+    """`meta.json` of a clip: at least fps and num_frames."""
+    path = pathlib.Path(clip_dir) / "meta.json"
+    try:
+        meta = json.loads(path.read_text())
+    except OSError as err:
+        raise ClipFormatError(f"cannot read {path}: {err.strerror or err}") from err
+    except json.JSONDecodeError as err:
+        raise ClipFormatError(f"{path} is not valid JSON ({err.msg})") from err
+    for key in ("fps", "num_frames"):
+        if key not in meta:
+            raise ClipFormatError(f"{path}: '{key}' is missing")
+    if not meta["fps"] > 0:
+        raise ClipFormatError(f"{path}: fps must be positive, got {meta['fps']}")
+    return meta
+
+
+def write_meta(clip_dir: str | pathlib.Path, **meta) -> pathlib.Path:
+    path = pathlib.Path(clip_dir) / "meta.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(".meta.json.tmp")
+    tmp.write_text(json.dumps(meta, indent=1))
+    tmp.replace(path)
+    return path
+
+
+def hand_file(root: str | pathlib.Path, side: str, kind: str) -> pathlib.Path:
+    """Path of a hand file inside a clip (or label) folder."""
+    if side not in SIDES:
+        raise ValueError(f"side must be one of {SIDES}, got {side!r}")
+    return pathlib.Path(root) / "hands" / side / f"{kind}.npz"
+
+
+def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:
+    """Clip folders under `root` (folders holding a hands/ subfolder), sorted by name;
+    `root` itself if it is one."""
+    root = pathlib.Path(root)
+    if not root.is_dir():
+        raise ClipFormatError(f"{root} is not a folder")
+    if (root / "hands").is_dir():
+        return [root]
+    return sorted(p for p in root.iterdir() if (p / "hands").is_dir())

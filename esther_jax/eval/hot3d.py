@@ -1,0 +1,82 @@
+"""A HOT3D-compatible preset of the official hand_tracking_toolkit pose metrics.
+
+What `facebookresearch/hand_tracking_toolkit` (metrics.py, evaluation.py) computes for
+the pose track, and what we reproduce:
+
+- landmarks: MANO's 16 FK joints plus the 5 smplx fingertip vertices, reordered to
+  HOT3D's canonical order `MANO_TO_CANONICAL_LANDMARK_MAPPING = [16, 17, 18, 19, 20, 0,
+  14, 15, 1, 2, 3, 4, 5, 6, 10, 11, 12, 7, 8, 9]` (5 tips, wrist, thumb MCP and IP,
+  then index, middle, ring, pinky MCP/PIP/DIP; the thumb CMC is not a landmark);
+- evaluated on 19 landmarks: the wrist is excluded (MANO's wrist differs from UmeTrack's);
+- MPJPE in millimetres, absolute in the world (here: rig) frame, no alignment;
+- PCK-AUC over thresholds `linspace(0, 50 mm, 101)`, normalised trapezoid, x 100; the
+  same on the 5 fingertips;
+- every 10th frame; sequences averaged with frame-count weights;
+- for methods that output MANO, the ground-truth shape is substituted before FK (do
+  this before calling us: `dataclasses.replace`-style, `eqx.tree_at(lambda p: p.betas, ...)`).
+
+Our 21 keypoints (MediaPipe order) map onto those 20 landmarks by
+`HOT3D_LANDMARKS_FROM_KEYPOINTS` (our keypoint 1, the thumb CMC, is unused).
+"""
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .. import metrics
+from ..mano.constants import KEYPOINT_FROM_MANO
+
+MANO_TO_CANONICAL_LANDMARK_MAPPING: tuple[int, ...] = (16, 17, 18, 19, 20, 0, 14, 15, 1, 2, 3, 4, 5, 6, 10, 11, 12, 7, 8, 9)
+HOT3D_LANDMARKS_FROM_KEYPOINTS: tuple[int, ...] = tuple(KEYPOINT_FROM_MANO.index(m) for m in MANO_TO_CANONICAL_LANDMARK_MAPPING)
+"""Canonical landmark i is our keypoint HOT3D_LANDMARKS_FROM_KEYPOINTS[i]."""
+LANDMARKS_TO_EVAL: tuple[int, ...] = tuple(i for i in range(20) if i != 5)
+"""The 19 evaluated landmarks (the wrist, canonical index 5, is excluded)."""
+FINGERTIP_LANDMARKS: tuple[int, ...] = (0, 1, 2, 3, 4)
+FRAME_STRIDE = 10
+
+
+def to_hot3d_landmarks(keypoints: Float[Array, "21 3"]) -> Float[Array, "20 3"]:
+    """Our 21 keypoints -> HOT3D's 20 canonical landmarks."""
+    return keypoints[jnp.asarray(HOT3D_LANDMARKS_FROM_KEYPOINTS)]
+
+
+def hot3d_sequence_metrics(
+    pred: Float[Array, "frames 21 3"], gt: Float[Array, "frames 21 3"], valid: Bool[Array, "frames"] | None = None,
+    frame_stride: int = FRAME_STRIDE,
+) -> dict[str, float]:  # fmt: skip
+    """MPJPE (mm), PCK-AUC and fingertip PCK-AUC (x100) of one sequence, HOT3D-style.
+
+    Returns also `num_frames`, the frame weight of this sequence in a dataset mean.
+    """
+    frames = np.arange(0, pred.shape[0], frame_stride)
+    if valid is not None:
+        frames = frames[np.asarray(valid)[frames]]
+    if frames.size == 0:
+        return {"mpjpe_mm": float("nan"), "pck_auc": float("nan"), "fingertip_pck_auc": float("nan"), "num_frames": 0}
+    p = np.asarray(pred)[frames][:, list(HOT3D_LANDMARKS_FROM_KEYPOINTS)]
+    g = np.asarray(gt)[frames][:, list(HOT3D_LANDMARKS_FROM_KEYPOINTS)]
+    errors = np.linalg.norm(p - g, axis=-1)  # (F, 20), metres
+    finite = np.isfinite(errors)  # HOT3D has NaN ground-truth landmarks (hand_tracking_toolkit#7): masked
+    body = errors[:, list(LANDMARKS_TO_EVAL)]
+    tips = errors[:, list(FINGERTIP_LANDMARKS)]
+    body_ok, tips_ok = finite[:, list(LANDMARKS_TO_EVAL)], finite[:, list(FINGERTIP_LANDMARKS)]
+    auc = lambda e, m: float(metrics.pck_auc(jnp.asarray(np.where(m, e, 0.0).reshape(-1)), jnp.asarray(m.reshape(-1)))) * 100  # noqa: E731
+    return {
+        "mpjpe_mm": float(np.mean(body[body_ok]) * 1000),
+        "pck_auc": auc(body, body_ok),
+        "fingertip_pck_auc": auc(tips, tips_ok),
+        "num_frames": int(frames.size),
+    }
+
+
+def hot3d_dataset_metrics(per_sequence: list[dict[str, float]]) -> dict[str, float]:
+    """Frame-count-weighted mean over sequences (hand_tracking_toolkit's evaluation.py)."""
+    weights = np.asarray([s["num_frames"] for s in per_sequence], np.float64)
+    if weights.sum() == 0:
+        return {"mpjpe_mm": float("nan"), "pck_auc": float("nan"), "fingertip_pck_auc": float("nan"), "num_frames": 0}
+    out = {}
+    for key in ("mpjpe_mm", "pck_auc", "fingertip_pck_auc"):
+        values = np.asarray([s[key] if s["num_frames"] else 0.0 for s in per_sequence])
+        out[key] = float(np.sum(values * weights) / weights.sum())
+    out["num_frames"] = int(weights.sum())
+    return out
