@@ -17,11 +17,31 @@ def main(argv: list[str] | None = None) -> int:
     evaluate.add_argument("--out", default="evaluation", help="output folder (default: ./evaluation)")
     evaluate.add_argument("--method", default="prediction", help="method name for the tables")
     evaluate.add_argument("--seed", type=int, default=0, help="bootstrap seed")
+    synth = commands.add_parser("synth", help="make synthetic egocentric stereo clips with exact ground truth")
+    synth.add_argument("--out", required=True, help="output folder (clip_00000, clip_00001, ...)")
+    synth.add_argument("--clips", type=int, default=10, help="number of clips (an interrupted run resumes)")
+    synth.add_argument("--frames", type=int, default=64, help="frames per clip (30 fps)")
+    synth.add_argument("--rig", default="esther", choices=["esther", "esther_mocap", "hot3d_aria", "hot3d_quest3"])
+    synth.add_argument("--render", action="store_true", help="render both views to video/*.mp4 and the hand crops")
+    synth.add_argument("--crops", action="store_true", help="render only the 224 x 224 hand crops and flow tokens")
+    synth.add_argument("--detector-preset", default="default", choices=["clean", "easy", "default", "hard"])
+    synth.add_argument("--vertices", action="store_true", help="store ground-truth vertices in gt.npz")
+    synth.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.command == "demo":
         from .demo import run
 
         run(args.out, seed=args.seed)
+    elif args.command == "synth":
+        from .data.synth import SynthConfig, synthesize
+
+        if args.clips < 0 or args.frames < 3:
+            print("esther synth: need --clips >= 0 and --frames >= 3", file=sys.stderr)
+            return 2
+        cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset,
+                          render=args.render, crops=args.crops, vertices=args.vertices)  # fmt: skip
+        summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
+        print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")
     elif args.command == "evaluate":
         from .eval import evaluate_folders
 

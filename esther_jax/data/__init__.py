@@ -1,1 +1,13 @@
-"""Data: clip folders (I/O of the formats in ARCHITECTURE.md)."""
+"""Data: the synthetic egocentric stereo clip engine and clip-folder I/O.
+
+Public names: `SynthConfig`, `make_clip`, `write_clip`, `load_clip`, `synthesize`
+(motion, detector simulation, rendering, crops, flow tokens), and `clip_io`.
+"""
+
+from . import clip_io as clip_io
+from .synth import Clip as Clip
+from .synth import SynthConfig as SynthConfig
+from .synth import load_clip as load_clip
+from .synth import make_clip as make_clip
+from .synth import synthesize as synthesize
+from .synth import write_clip as write_clip

@@ -1,0 +1,307 @@
+"""Egocentric hand and head motion with exact ground truth (the synthetic engine's core).
+
+A clip is sampled in a world frame equal to the rig frame at t = 0 (OpenCV axes: x right,
+y down, z forward), then expressed in the rig frame of every frame:
+
+- *Head egomotion*: `T_world_rig(t)`, smooth yaw / pitch / roll (sums of random
+  sinusoids of 0.1-0.8 Hz; tens of degrees and up to ~60 deg/s, as in head-mounted
+  capture) and a few centimetres of translation, plus occasional quick head turns.
+- *Wrist*: a reach-and-hold path in front of the body (random waypoints every
+  0.5-1.5 s joined by minimum-jerk segments), 0.15-0.8 m from the eyes and mostly
+  0.25-0.5 m; some clips swing the hand out of one or both views and back.
+- *Wrist orientation*: palm facing down-inwards with fingers forward (the egocentric
+  view of a working hand), with smooth random deviations of up to ~40 degrees.
+- *Articulation*: keyframes from the built-in model's natural-pose archetypes (grasp,
+  release, pinch, point, flat, ...) blended with joint noise, joined by minimum-jerk
+  interpolation in anatomical angles and clipped to the joint limits.
+- *Shape*: betas ~ N(0, I), one per clip (both hands belong to one person).
+
+Left hands are sampled as right hands and mirrored (ARCHITECTURE.md), then posed with
+the left model. Ground truth per frame and hand: MANO parameters in the rig frame,
+21 joints, vertices on request, per-view per-joint visibility (inside the image and not
+hidden by the hand itself, the other hand or the held object, by a depth test) and the
+appendix-L on-screen flag.
+"""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import mano, metrics
+from ..cameras import StereoRig
+from ..mano.anatomy import JOINT_LIMITS
+from ..mano.builtin_generator import ARCHETYPES, _archetype_angles
+from ..rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+FPS = 30.0
+
+
+@dataclasses.dataclass(frozen=True)
+class MotionConfig:
+    """Knobs of the motion sampler (defaults: the paper's label statistics)."""
+
+    fps: float = FPS
+    two_hands_probability: float = 0.6
+    leave_view_probability: float = 0.3
+    head_yaw_deg: float = 18.0
+    head_pitch_deg: float = 10.0
+    head_roll_deg: float = 4.0
+    head_translation_m: float = 0.04
+    object_probability: float = 0.5
+    depth_range_m: tuple[float, float] = (0.15, 0.8)
+
+
+def _smooth_noise(rng: np.random.Generator, T: int, fps: float, amplitude: float, dims: int, freqs=(0.1, 0.8)) -> np.ndarray:
+    """(T, dims) sum of four random sinusoids per dimension, RMS about `amplitude`."""
+    t = np.arange(T)[:, None] / fps
+    out = np.zeros((T, dims))
+    for _ in range(4):
+        f = rng.uniform(*freqs, size=dims)
+        phase = rng.uniform(0, 2 * np.pi, size=dims)
+        out += rng.normal(size=dims) * np.sin(2 * np.pi * f * t + phase)
+    return out * amplitude / 2.0
+
+
+def _min_jerk(keys: np.ndarray, key_times: np.ndarray, T: int, fps: float) -> np.ndarray:
+    """Minimum-jerk (quintic smoothstep) interpolation through keyframes (K, ...) at times (K,)."""
+    t = np.arange(T) / fps
+    idx = np.clip(np.searchsorted(key_times, t, side="right") - 1, 0, len(key_times) - 2)
+    span = key_times[idx + 1] - key_times[idx]
+    s = np.clip((t - key_times[idx]) / span, 0.0, 1.0)
+    s = s**3 * (10 - 15 * s + 6 * s**2)
+    s = s.reshape((T,) + (1,) * (keys.ndim - 1))
+    return keys[idx] * (1 - s) + keys[idx + 1] * s
+
+
+def _key_times(rng: np.random.Generator, duration: float, lo: float, hi: float) -> np.ndarray:
+    times = [0.0]
+    while times[-1] < duration:
+        times.append(times[-1] + rng.uniform(lo, hi))
+    return np.asarray(times)
+
+
+def _rotation(axis_angle: np.ndarray) -> np.ndarray:
+    return np.asarray(axis_angle_to_matrix(jnp.asarray(axis_angle)))
+
+
+def head_poses(rng: np.random.Generator, T: int, cfg: MotionConfig) -> np.ndarray:
+    """(T, 4, 4) T_world_rig: the head's pose, identity at t = 0."""
+    angles = _smooth_noise(rng, T, cfg.fps, 1.0, 3) * np.deg2rad([cfg.head_pitch_deg, cfg.head_yaw_deg, cfg.head_roll_deg])
+    if rng.uniform() < 0.3:  # a quick look-around
+        t0 = rng.uniform(0.2, 0.8) * T / cfg.fps
+        turn = np.deg2rad(rng.uniform(-40, 40)) / (1 + np.exp(-(np.arange(T) / cfg.fps - t0) * 8.0))
+        angles[:, 1] += turn
+    angles -= angles[:1]
+    translation = _smooth_noise(rng, T, cfg.fps, cfg.head_translation_m, 3)
+    translation -= translation[:1]
+    T_world_rig = np.tile(np.eye(4), (T, 1, 1))
+    T_world_rig[:, :3, :3] = _rotation(angles)
+    T_world_rig[:, :3, 3] = translation
+    return T_world_rig
+
+
+# rest orientation of a right hand seen from the head: fingers forward (+z), back of the
+# hand up (-y), thumb to the left (-x): model axes (x, y, z) -> rig (-z, -y, -x)
+_R_EGO = np.array([[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
+def wrist_path(rng: np.random.Generator, T: int, cfg: MotionConfig, lateral: float, leave_view: bool) -> np.ndarray:
+    """(T, 3) right-hand wrist positions in the world frame (metres)."""
+    duration = T / cfg.fps
+    times = _key_times(rng, duration, 0.5, 1.5)
+    depth = np.clip(rng.lognormal(np.log(0.37), 0.22, size=len(times)), 0.22, 0.7)
+    x = lateral + rng.normal(scale=0.07, size=len(times))
+    y = 0.10 + rng.normal(scale=0.06, size=len(times))
+    keys = np.stack([x, y, depth], axis=1)
+    if leave_view:  # one waypoint far to the side (out of one or both views)
+        k = rng.integers(1, len(times))
+        keys[k, 0] = np.sign(lateral or 1.0) * rng.uniform(0.45, 0.9) * keys[k, 2] * 1.6
+    path = _min_jerk(keys, times, T, cfg.fps)
+    path += _smooth_noise(rng, T, cfg.fps, 0.008, 3, freqs=(0.8, 2.5))  # tremor and small adjustments
+    path[:, 2] = np.clip(path[:, 2], *cfg.depth_range_m)
+    return path
+
+
+def wrist_orientations(rng: np.random.Generator, T: int, cfg: MotionConfig) -> np.ndarray:
+    """(T, 3, 3) right-hand wrist rotations in the world frame."""
+    deviation = _smooth_noise(rng, T, cfg.fps, 1.0, 3, freqs=(0.1, 0.6)) * np.deg2rad([25.0, 30.0, 20.0])
+    deviation += rng.normal(size=3) * np.deg2rad([15.0, 20.0, 15.0])
+    return np.einsum("tij,jk->tik", _rotation(deviation), _R_EGO)
+
+
+def articulation(rng: np.random.Generator, T: int, cfg: MotionConfig, frames: np.ndarray) -> np.ndarray:
+    """(T, 15, 3) right-hand poses (axis-angle) moving through natural-pose keyframes."""
+    names = list(ARCHETYPES)
+    table = np.stack([_archetype_angles(n) for n in names])
+    times = _key_times(rng, T / cfg.fps, 0.4, 1.2)
+    a, b = rng.integers(len(names), size=(2, len(times)))
+    mix = rng.uniform(size=(len(times), 1, 1))
+    keys = (1 - mix) * table[a] + mix * table[b] + rng.normal(size=(len(times), 15, 3)) * np.deg2rad([8.0, 4.0, 2.0])
+    keys = np.clip(keys, JOINT_LIMITS[None, ..., 0], JOINT_LIMITS[None, ..., 1])
+    angles = _min_jerk(keys, times, T, cfg.fps)
+    return np.einsum("jai,tji->tja", frames, angles)
+
+
+def _box_object(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A held box: 8 corners in the hand frame (metres) and its 6 quad faces."""
+    size = rng.uniform([0.03, 0.03, 0.06], [0.07, 0.06, 0.14])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * size / 2
+    # in the MANO frame the palm faces -y; the box sits under the palm, between thumb and fingers
+    corners = corners + np.array([-0.07, -0.045, 0.01])
+    faces = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+    return corners, faces
+
+
+class HandTrack(eqx.Module):
+    """Ground truth of one hand over a clip, in the rig frame of each frame."""
+
+    params: mano.ManoParams
+    """(T,)-batched MANO parameters; betas repeated per frame."""
+    joints: jax.Array
+    """(T, 21, 3) keypoints, metres."""
+    vertices: jax.Array
+    """(T, V, 3) mesh vertices, metres."""
+
+
+@dataclasses.dataclass
+class ClipMotion:
+    """Everything the detector simulator and the renderer need, per frame."""
+
+    rig: StereoRig
+    fps: float
+    T_world_rig: np.ndarray  # (T, 4, 4)
+    hands: dict[str, HandTrack]  # side -> track
+    visibility: dict[str, np.ndarray]  # side -> (T, 2 views, 21) bool
+    onscreen: dict[str, np.ndarray]  # side -> (T,) bool
+    object_corners: np.ndarray | None  # (T, 8, 3) rig frame
+    object_faces: np.ndarray | None
+    betas: np.ndarray
+
+
+@eqx.filter_jit
+def _pose_track(model: mano.ManoModel, params: mano.ManoParams) -> tuple[jax.Array, jax.Array]:
+    out = mano.forward_batch(model, params)
+    return out.joints, out.vertices
+
+
+def _to_rig(T_rig_world: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.einsum("tij,t...j->t...i", T_rig_world[:, :3, :3], points) + T_rig_world[:, None, :3, 3]
+
+
+def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: MotionConfig = MotionConfig()) -> ClipMotion:
+    """Sample one clip's motion and compute its ground truth (joints, vertices, visibility)."""
+    T = num_frames
+    models = {"right": mano.load_builtin("right"), "left": mano.load_builtin("left")}
+    right = models["right"]
+    frames = np.asarray(mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right), np.float64)
+    sides = ["right", "left"] if rng.uniform() < cfg.two_hands_probability else [str(rng.choice(["right", "left"]))]
+    betas = rng.normal(size=10)
+    T_world_rig = head_poses(rng, T, cfg)
+    T_rig_world = np.linalg.inv(T_world_rig)
+    leave = rng.uniform() < cfg.leave_view_probability
+    hands, object_corners, object_faces = {}, None, None
+    with_object = rng.uniform() < cfg.object_probability
+    holder = sides[0]
+    for side in sides:
+        # sampled as a right hand (on the right of the body); a left hand is its mirror image
+        wrist = wrist_path(rng, T, cfg, 0.09 if side == "right" else 0.07, leave and side == sides[-1])
+        R_world = wrist_orientations(rng, T, cfg)
+        hand_pose = articulation(rng, T, cfg, frames)
+        if side == "left":
+            wrist = wrist * np.array([-1.0, 1.0, 1.0])
+            M = np.diag([-1.0, 1.0, 1.0])
+            R_world = M @ R_world @ M
+            hand_pose = hand_pose * np.array([1.0, -1.0, -1.0])
+        R_rig = np.einsum("tij,tjk->tik", T_rig_world[:, :3, :3], R_world)
+        params = mano.ManoParams(
+            global_orient=jnp.asarray(np.asarray(matrix_to_axis_angle(jnp.asarray(R_rig))), jnp.result_type(float)),
+            hand_pose=jnp.asarray(hand_pose, jnp.result_type(float)),
+            betas=jnp.asarray(np.tile(betas, (T, 1)), jnp.result_type(float)),
+            transl=jnp.asarray(_to_rig(T_rig_world, wrist[:, None])[:, 0], jnp.result_type(float)),
+        )
+        joints, vertices = _pose_track(models[side], params)
+        hands[side] = HandTrack(params=params, joints=joints, vertices=vertices)
+        if with_object and side == holder:
+            corners, object_faces = _box_object(rng)
+            corners = corners * np.array([1.0 if side == "right" else -1.0, 1.0, 1.0])
+            # the box follows the wrist: model frame -> world (rotation about the rest wrist)
+            rest_wrist = np.asarray(mano.rest_joints(models[side], jnp.asarray(betas, jnp.result_type(float)))[0])
+            in_world = np.einsum("tij,kj->tki", R_world, corners - rest_wrist) + wrist[:, None]
+            object_corners = _to_rig(T_rig_world, in_world)
+    visibility, onscreen = _visibility(rig, hands, object_corners, object_faces)
+    return ClipMotion(rig, cfg.fps, T_world_rig, hands, visibility, onscreen, object_corners, object_faces, betas)
+
+
+# ----------------------------------------------------------------------------- visibility
+
+_SPLAT_CELL_PX = 8.0
+"""Cell size of the splatted depth buffer used for occlusion (about the vertex spacing of a hand at 0.3 m)."""
+_SURFACE_MARGIN_M = np.array([0.025, 0.025, 0.016, 0.014, 0.012] + [0.022, 0.016, 0.014, 0.012] * 4)
+"""A joint lies inside the hand: it counts as visible when no surface is more than its
+own depth below the skin (palm joints deeper than finger joints) in front of it, i.e.
+only other parts of the hand, the other hand or the object occlude it."""
+
+
+def _object_points(corners: np.ndarray, faces: np.ndarray, per_side: int = 12) -> np.ndarray:
+    """(T, n, 3) points densely covering the box faces (for the depth test)."""
+    s = (np.arange(per_side) + 0.5) / per_side
+    u, v = np.meshgrid(s, s)
+    pts = []
+    for f in faces:
+        a, b, _, d = corners[:, f[0]], corners[:, f[1]], corners[:, f[2]], corners[:, f[3]]
+        pts.append(a[:, None] + u.reshape(1, -1, 1) * (b - a)[:, None] + v.reshape(1, -1, 1) * (d - a)[:, None])
+    return np.concatenate(pts, axis=1)
+
+
+def _occluders_depth(camera, points_cam: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Per-point splat depth buffer lookup helper: (cell ids, depths) of occluder points."""
+    uv = camera.project(points_cam)
+    cell = jnp.floor((uv + 0.5) / _SPLAT_CELL_PX).astype(jnp.int32)
+    return cell, points_cam[..., 2]
+
+
+@eqx.filter_jit
+def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -> jax.Array:
+    """(21,) bool: inside the image and not behind an occluder splat (one frame, one view).
+
+    Occluder points are splatted into cells of `_SPLAT_CELL_PX` px, keeping the nearest
+    depth in each cell; a joint is hidden when the nearest surface in its cell is more
+    than `_SURFACE_MARGIN_M` (per joint) in front of it.
+    """
+    in_image = camera.is_visible(joints_cam)
+    cells_w = int(math.ceil(camera.width / _SPLAT_CELL_PX)) + 2
+    cells_h = int(math.ceil(camera.height / _SPLAT_CELL_PX)) + 2
+    occ_cell, occ_depth = _occluders_depth(camera, occluders_cam)
+    inside = (occ_depth > 1e-3) & (occ_cell[:, 0] >= 0) & (occ_cell[:, 0] < cells_w - 2) & (occ_cell[:, 1] >= 0) & (occ_cell[:, 1] < cells_h - 2)
+    flat = (occ_cell[:, 1] + 1) * cells_w + (occ_cell[:, 0] + 1)
+    big = jnp.asarray(1e9, occ_depth.dtype)
+    buffer = jnp.full(cells_w * cells_h, big).at[jnp.where(inside, flat, 0)].min(jnp.where(inside, occ_depth, big))
+    nearest = buffer.reshape(cells_h, cells_w)
+    j_cell, j_depth = _occluders_depth(camera, joints_cam)
+    jx = jnp.clip(j_cell[:, 0] + 1, 0, cells_w - 1)
+    jy = jnp.clip(j_cell[:, 1] + 1, 0, cells_h - 1)
+    front = nearest[jy, jx]
+    return in_image & (front > j_depth - jnp.asarray(_SURFACE_MARGIN_M, j_depth.dtype))
+
+
+def _visibility(rig: StereoRig, hands: dict[str, HandTrack], object_corners, object_faces):
+    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
+    occluders = [np.asarray(h.vertices) for h in hands.values()]
+    if object_corners is not None:
+        occluders.append(_object_points(object_corners, object_faces))
+    occ_rig = np.concatenate(occluders, axis=1)
+    per_frame = jax.vmap(_joint_visibility, in_axes=(None, 0, 0))
+    to_right = lambda p: p @ T_right_left[:3, :3].T + T_right_left[:3, 3]  # noqa: E731
+    visibility, onscreen = {}, {}
+    dtype = jnp.result_type(float)
+    for side, h in hands.items():
+        joints = np.asarray(h.joints)
+        left = per_frame(rig.left, jnp.asarray(joints, dtype), jnp.asarray(occ_rig, dtype))
+        right = per_frame(rig.right, jnp.asarray(to_right(joints), dtype), jnp.asarray(to_right(occ_rig), dtype))
+        visibility[side] = np.stack([np.asarray(left), np.asarray(right)], axis=1)
+        onscreen[side] = np.asarray(jax.vmap(metrics.onscreen, in_axes=(0, None))(jnp.asarray(joints, dtype), rig))
+    return visibility, onscreen

@@ -1,0 +1,307 @@
+"""The synthetic egocentric stereo clip engine: motion -> detections -> (rendering, crops,
+flow tokens) -> clip folders (ARCHITECTURE.md format), deterministic from a seed.
+
+`esther synth --out DIR --clips N --frames T --rig esther [--render] [--detector-preset default] [--seed S]`
+writes `DIR/clip_00000/ ...`. Each clip depends only on (seed, clip index), is built in
+a hidden temporary folder and renamed into place when complete, so an interrupted run
+resumes where it stopped without redoing or corrupting finished clips.
+"""
+
+import dataclasses
+import functools
+import json
+import pathlib
+import shutil
+import time
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import cameras, mano
+from .. import crops as crop_lib
+from ..cameras import PinholeCamera, StereoRig
+from . import clip_io, detector, flow, motion, render
+
+CROP_SIZE = 224
+CROP_PADDING = 1.5
+"""Crop side relative to the hand's 2D extent (context for the network)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SynthConfig:
+    num_frames: int = 64
+    rig: str = "esther"
+    detector_preset: str = "default"
+    render: bool = False
+    """Render both full views to video/*.mp4 and the hand crops with flow tokens."""
+    crops: bool = False
+    """Render only the S x S hand crops (+ flow tokens), not the full views."""
+    crop_size: int = CROP_SIZE
+    vertices: bool = False
+    """Store ground-truth vertices in gt.npz."""
+    motion_config: motion.MotionConfig = motion.MotionConfig()
+
+
+def clip_rng(seed: int, index: int) -> np.random.Generator:
+    return np.random.default_rng([seed, index])
+
+
+@dataclasses.dataclass
+class Clip:
+    """One clip in memory (what `write_clip` stores and `load_clip` returns)."""
+
+    rig: StereoRig
+    meta: dict
+    keypoints: dict[str, dict[str, np.ndarray]]
+    gt: dict[str, dict[str, np.ndarray]]
+    crops: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
+    videos: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # view -> (T, H, W[, 3]) uint8
+
+
+def make_clip(seed: int, index: int, cfg: SynthConfig = SynthConfig()) -> Clip:
+    """Sample, detect and optionally render one clip (pure function of seed and index)."""
+    rng = clip_rng(seed, index)
+    rig = cameras.rig_preset(cfg.rig)
+    m = motion.sample_clip(rng, rig, cfg.num_frames, cfg.motion_config)
+    keypoints, gt = {}, {}
+    for side, track in m.hands.items():
+        joints = np.asarray(track.joints, np.float64)
+        keypoints[side] = detector.simulate_detectors(rng, rig, joints, m.visibility[side], cfg.detector_preset)
+        p = track.params
+        gt[side] = dict(
+            global_orient=np.asarray(p.global_orient, np.float32),
+            hand_pose=np.asarray(p.hand_pose, np.float32),
+            betas=np.asarray(m.betas, np.float32),
+            transl=np.asarray(p.transl, np.float32),
+            joints=np.asarray(track.joints, np.float32),
+            onscreen=m.onscreen[side],
+            visibility=m.visibility[side],
+        )
+        if cfg.vertices:
+            gt[side]["vertices"] = np.asarray(track.vertices, np.float32)
+    meta = {
+        "fps": m.fps,
+        "num_frames": cfg.num_frames,
+        "source": "esther-synth",
+        "seed": seed,
+        "index": index,
+        "rig": cfg.rig,
+        "detector_preset": cfg.detector_preset,
+        "hands": sorted(m.hands),
+        "T_world_rig": m.T_world_rig.tolist(),
+    }
+    clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt)
+    if cfg.render or cfg.crops:
+        scene = render.sample_scene(rng, grayscale=cfg.rig.startswith("hot3d"))
+        _render_crops(clip, m, scene, cfg, rng)
+        if cfg.render:
+            _render_videos(clip, m, scene)
+    return clip
+
+
+def _meshes_in(vertices: dict[str, np.ndarray], m: motion.ClipMotion, scene: render.Scene, t: int, T_cam_rig: np.ndarray):
+    """Hands (and the held box) of frame t in a camera frame, for `render_view`."""
+    out = []
+    for side, v_rig in vertices.items():
+        v = v_rig[t] @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]
+        out.append((v, _faces(side), scene.skin))
+    if m.object_corners is not None:
+        v = m.object_corners[t] @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]
+        quads = m.object_faces
+        tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        out.append((v, tris, scene.object_colour))
+    return out
+
+
+@functools.cache
+def _faces(side: str) -> np.ndarray:
+    return np.asarray(mano.load_builtin(side).faces)
+
+
+def _render_videos(clip: Clip, m: motion.ClipMotion, scene: render.Scene) -> None:
+    rig = m.rig
+    vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
+    for view, camera, T_rig_cam in (("left", rig.left, np.eye(4)), ("right", rig.right, np.asarray(rig.T_left_right, np.float64))):
+        rays = render._pixel_rays(camera)
+        frames = []
+        T_cam_rig = np.linalg.inv(T_rig_cam)
+        for t in range(len(m.T_world_rig)):
+            meshes = _meshes_in(vertices, m, scene, t, T_cam_rig)
+            image, _ = render.render_view(scene, camera, m.T_world_rig[t] @ T_rig_cam, meshes, rays)
+            frames.append(image)
+        clip.videos[view] = np.stack(frames)
+
+
+def _crop_box(uv: np.ndarray, size_floor: float = 40.0) -> np.ndarray:
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    centre, half = 0.5 * (lo + hi), max(0.5 * float(np.max(hi - lo)), size_floor / 2)
+    return np.concatenate([centre - half, centre + half])
+
+
+def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: SynthConfig, rng: np.random.Generator) -> None:
+    """Hand-following S x S crops of both views, their intrinsics and the flow tokens.
+
+    The crop window follows the hand's projected joints (an oracle tracker, smoothed
+    over time with a little jitter, as a detector-driven crop would be)."""
+    rig = m.rig
+    S = cfg.crop_size
+    T = len(m.T_world_rig)
+    poses = (np.eye(4), np.asarray(rig.T_left_right, np.float64))
+    vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
+    for side, track in m.hands.items():
+        uv = detector.project_views(rig, np.asarray(track.joints, np.float64))  # (T, 2, 21, 2)
+        images = np.zeros((T, 2, S, S) + (() if scene.grayscale else (3,)), np.uint8)
+        K = np.zeros((T, 2, 3, 3), np.float32)
+        R = np.zeros((T, 2, 3, 3), np.float32)
+        valid = np.zeros((T, 2, S, S), bool)
+        boxes = np.zeros((T, 2, 4), np.float32)
+        for v, (camera, T_rig_cam) in enumerate(zip((rig.left, rig.right), poses)):
+            raw = np.stack([_crop_box(uv[t, v]) for t in range(T)])
+            smooth = cv2.GaussianBlur(raw.astype(np.float32)[:, None], (1, 5), 1.0)[:, 0] if T >= 5 else raw
+            smooth = smooth + rng.normal(scale=0.02, size=smooth.shape) * (smooth[:, 2:3] - smooth[:, 0:1])
+            T_cam_rig = np.linalg.inv(T_rig_cam)
+            if isinstance(camera, PinholeCamera):
+                make = lambda b, camera=camera: crop_lib.crop_camera(camera, b, S, CROP_PADDING)  # noqa: E731
+            else:
+                make = lambda b, camera=camera: crop_lib.rectified_crop(camera, b, "offbb120", S, CROP_PADDING)  # noqa: E731
+            batch = jax.vmap(make)(jnp.asarray(smooth, jnp.result_type(float)))  # all frames at once
+            fx, fy, cx, cy = (np.asarray(x, np.float64) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
+            R_all = np.asarray(batch.R_cam_crop, np.float64)
+            for t in range(T):
+                crop = crop_lib.Crop(camera=PinholeCamera(fx[t], fy[t], cx[t], cy[t], S, S), R_cam_crop=jnp.asarray(R_all[t]))
+                T_crop_cam = np.eye(4)
+                T_crop_cam[:3, :3] = R_all[t].T
+                T_world_crop = m.T_world_rig[t] @ T_rig_cam @ np.linalg.inv(T_crop_cam)
+                meshes = _meshes_in(vertices, m, scene, t, T_crop_cam @ T_cam_rig)
+                images[t, v], _ = render.render_view(scene, crop.camera, T_world_crop, meshes)
+                K[t, v] = [[fx[t], 0, cx[t]], [0, fy[t], cy[t]], [0, 0, 1]]
+                R[t, v] = R_all[t]
+                boxes[t, v] = smooth[t]
+                valid[t, v] = _inside_source(camera, crop)
+        tokens = flow.clip_flow_tokens(images[:, 0], K[:, 0], valid[:, 0])
+        clip.crops[side] = {"images": images, "K": K, "R_cam_crop": R, "box": boxes, "flow": tokens}
+
+
+def _inside_source(camera, crop: crop_lib.Crop) -> np.ndarray:
+    """(S, S) crop pixels that come from inside the source image."""
+    if isinstance(camera, PinholeCamera):  # an axis-aligned crop: the window's overlap with the image
+        S = crop.camera.width
+        scale = float(camera.fx) / float(crop.camera.fx)
+        u = (np.arange(S) - float(crop.camera.cx)) * scale + float(camera.cx)
+        v = (np.arange(S) - float(crop.camera.cy)) * scale + float(camera.cy)
+        return ((v[:, None] >= -0.5) & (v[:, None] < camera.height - 0.5)) & ((u[None] >= -0.5) & (u[None] < camera.width - 0.5))
+    source = np.asarray(crop_lib.rectification_map(camera, crop))
+    return (source[..., 0] >= -0.5) & (source[..., 0] < camera.width - 0.5) & (source[..., 1] >= -0.5) & (source[..., 1] < camera.height - 0.5)
+
+
+# ----------------------------------------------------------------------------- I/O
+
+
+def write_clip(clip: Clip, folder: str | pathlib.Path) -> pathlib.Path:
+    """Write a clip folder atomically: built next to its destination, then renamed."""
+    folder = pathlib.Path(folder)
+    tmp = folder.with_name(f".{folder.name}.partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    clip.rig.to_json(tmp / "rig.json")
+    for side in clip.keypoints:
+        clip_io.save_npz(clip_io.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
+        clip_io.save_npz(clip_io.hand_file(tmp, side, "gt"), **clip.gt[side])
+        if side in clip.crops:
+            clip_io.save_npz(tmp / "crops" / f"{side}.npz", **clip.crops[side])
+    for view, frames in clip.videos.items():
+        _write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
+    clip_io.write_meta(tmp, **clip.meta)
+    if folder.exists():
+        shutil.rmtree(folder)
+    tmp.rename(folder)
+    return folder
+
+
+def _write_video(path: pathlib.Path, frames: np.ndarray, fps: float) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = frames.shape[1:3]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h), isColor=frames.ndim == 4)
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write {path} (no mp4v encoder in this OpenCV build)")
+    for frame in frames:
+        writer.write(frame[..., ::-1] if frame.ndim == 3 else frame)  # RGB -> BGR
+    writer.release()
+
+
+def read_video(path: str | pathlib.Path) -> np.ndarray:
+    """(T, H, W, 3) RGB frames of an mp4 (clear error when missing or unreadable)."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise clip_io.ClipFormatError(f"{path} does not exist")
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame[..., ::-1])
+    capture.release()
+    if not frames:
+        raise clip_io.ClipFormatError(f"{path} holds no readable video frames (truncated or not an mp4)")
+    return np.stack(frames)
+
+
+def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
+    """Read a clip folder back (validating every file)."""
+    folder = pathlib.Path(folder)
+    meta = clip_io.read_meta(folder)
+    try:
+        rig = StereoRig.from_json(folder / "rig.json")
+    except ValueError as err:
+        raise clip_io.ClipFormatError(str(err)) from err
+    keypoints, gt, crop_data = {}, {}, {}
+    for side in clip_io.SIDES:
+        path = clip_io.hand_file(folder, side, "keypoints")
+        if not path.exists():
+            continue
+        keypoints[side] = clip_io.load_npz(path, "keypoints")
+        if clip_io.hand_file(folder, side, "gt").exists():
+            gt[side] = clip_io.load_npz(clip_io.hand_file(folder, side, "gt"), "gt")
+        crop_path = folder / "crops" / f"{side}.npz"
+        if crop_path.exists():
+            try:
+                with open(crop_path, "rb") as f, np.load(f) as data:
+                    crop_data[side] = {k: data[k] for k in data.files}
+            except Exception as err:  # noqa: BLE001 (zip/EOF/OS errors: say which file)
+                raise clip_io.ClipFormatError(f"{crop_path} is truncated or not an npz file ({err})") from err
+    if not keypoints:
+        raise clip_io.ClipFormatError(f"{folder} has no hands/<side>/keypoints.npz")
+    clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt, crops=crop_data)
+    if videos:
+        clip.videos = {view: read_video(folder / "video" / f"{view}.mp4") for view in ("left", "right")}
+    return clip
+
+
+def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = SynthConfig(), seed: int = 0, progress: bool = True) -> dict:
+    """Make `num_clips` clips under `out` (resuming: finished clips are kept as they are)."""
+    from tqdm import tqdm
+
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    made, skipped = 0, 0
+    t0 = time.perf_counter()
+    for index in tqdm(range(num_clips), desc="synth", unit="clip", disable=not progress):
+        folder = out / f"clip_{index:05d}"
+        if (folder / "meta.json").exists():  # complete: clips only appear by an atomic rename
+            skipped += 1
+            continue
+        write_clip(make_clip(seed, index, cfg), folder)
+        made += 1
+    summary = {"made": made, "skipped": skipped, "seconds": time.perf_counter() - t0, "out": str(out)}
+    (out / "synth.json").write_text(json.dumps({**summary, "config": _config_dict(cfg), "seed": seed}, indent=1))
+    return summary
+
+
+def _config_dict(cfg: SynthConfig) -> dict:
+    d = dataclasses.asdict(cfg)
+    d["motion_config"] = dataclasses.asdict(cfg.motion_config)
+    return d
