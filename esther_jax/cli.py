@@ -27,11 +27,20 @@ def main(argv: list[str] | None = None) -> int:
     synth.add_argument("--detector-preset", default="default", choices=["clean", "easy", "default", "hard"])
     synth.add_argument("--vertices", action="store_true", help="store ground-truth vertices in gt.npz")
     synth.add_argument("--seed", type=int, default=0)
+    label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
+    label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
+    label.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz, quality.json)")
+    label.add_argument("--resume", action="store_true", help="skip clips whose labels are complete")
+    label.add_argument("--reject", help="human-review reject list: lines 'clip,side,frame'")
+    label.add_argument("--review", action="store_true", help="also write a contact sheet of flagged frames per hand")
     args = parser.parse_args(argv)
+    _enable_compilation_cache()
     if args.command == "demo":
         from .demo import run
 
         run(args.out, seed=args.seed)
+    elif args.command == "label":
+        return _label(args)
     elif args.command == "synth":
         from .data.synth import SynthConfig, synthesize
 
@@ -53,6 +62,53 @@ def main(argv: list[str] | None = None) -> int:
         print((pathlib.Path(args.out) / "table.md").read_text())
         print(f"{result['num_hands']} hands, coverage {result['coverage']:.1%}; wrote {pathlib.Path(args.out).resolve()}")
     return 0
+
+
+def _enable_compilation_cache() -> None:
+    """Persist XLA compilations between runs (the teacher's solvers take ~40 s to compile)."""
+    import os
+
+    import jax
+
+    path = os.environ.get("ESTHER_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "esther_jax", "xla"))
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def _label(args) -> int:
+    import json
+
+    from fitting import label_clips, read_reject_list
+    from fitting.label import review_clip
+
+    from .data import clip_io
+
+    clips = []
+    for path in args.clips:
+        try:
+            clips.extend(clip_io.list_clips(path))
+        except clip_io.ClipFormatError as err:
+            print(f"esther label: {err}", file=sys.stderr)
+            return 2
+    try:
+        rejects = read_reject_list(args.reject) if args.reject else frozenset()
+    except (OSError, ValueError) as err:
+        print(f"esther label: {err}", file=sys.stderr)
+        return 2
+    result = label_clips(clips, args.out, resume=args.resume, rejects=rejects)
+    if args.review:
+        for summary in result["labelled"]:
+            for sheet in review_clip(next(c for c in clips if c.name == summary["clip"]), pathlib.Path(args.out)):
+                print(f"review sheet: {sheet}")
+    for failure in result["failed"]:
+        print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+    rate = result["hand_frames"] / max(result["seconds"], 1e-9)
+    print(
+        f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames, {rate:.0f} hand-frames/s), "
+        f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
+    )
+    (pathlib.Path(args.out) / "label_summary.json").write_text(json.dumps(result, indent=1, default=float))
+    return 1 if result["failed"] and not result["labelled"] else 0
 
 
 if __name__ == "__main__":

@@ -1,61 +1,111 @@
 """`esther demo`: the main job on the embedded default (no dataset, no licensed model).
 
-Until the teacher pipeline lands, the demo poses the built-in open hand (both sides)
-through a few natural poses drawn from its PCA pose space, prints the forward
-kinematics (21 keypoints of the right hand, metres) and the timing of the jitted
-kernels, exports the meshes (.obj, .ply, .glb) and renders them to a PNG.
+1. Make a synthetic clip on the paper's rig (1920x1200 pinhole pair, 62 mm) with both
+   hands, 128 frames, and the default (realistic) detector noise.
+2. Label it with the teacher (fusion, prefilter, shape lock, per-frame fits, motion stage).
+3. Evaluate the labels against the exact ground truth (P-MPJPE, PA-MPJPE, wrist, jitter
+   with bootstrap intervals) and print the label-quality table (appendix N).
+4. Draw the fitted meshes over both rendered views for a few frames (PNG), and export
+   one fitted mesh.
 """
 
+import json
 import pathlib
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import mano
-from .viz import plot_hand_meshes
+from .data import motion, render, synth
+from .eval import evaluate_folders
 
 
-def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0) -> dict[str, pathlib.Path]:
+def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0, frames: int = 128) -> dict[str, pathlib.Path]:
+    from fitting import label_clips
+    from fitting.review import contact_sheet, overlay_mesh, project_views
+
+    t_start = time.perf_counter()
     out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    clips_dir, labels_dir, eval_dir = out / "clips", out / "labels", out / "evaluation"
+    cfg = synth.SynthConfig(num_frames=frames, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    print(f"1/4 synthetic clip: rig 'esther', {frames} frames, both hands, detector preset '{cfg.detector_preset}'")
+    clip = synth.make_clip(seed, 0, cfg)
+    clip_path = synth.write_clip(clip, clips_dir / "clip_00000")
+
+    print("2/4 labelling with the teacher (the first run compiles its solvers; later runs reuse the cache)")
     t0 = time.perf_counter()
-    right, left = mano.load_builtin("right"), mano.load_builtin("left")
-    print(f"built-in open hand: {right.num_vertices} vertices, {right.faces.shape[0]} faces, "
-          f"{right.num_betas} shape directions, 45-D PCA pose space")
+    result = label_clips([clip_path], labels_dir, progress=False)
+    if result["failed"]:
+        raise RuntimeError(f"labelling failed: {result['failed']}")
+    label_seconds = time.perf_counter() - t0
 
-    rng = np.random.default_rng(seed)
-    poses = {"flat": jnp.zeros((15, 3))}
-    for name, coefficients in (("mean pose", np.zeros(6)), ("natural sample", rng.normal(size=6))):
-        poses[name] = mano.pca_to_hand_pose(right, jnp.asarray(coefficients, jnp.float32), flat_hand_mean=False)
-    betas = jnp.asarray(rng.normal(size=10), jnp.float32)
+    print("3/4 evaluating the labels against the ground truth")
+    metrics = evaluate_folders(labels_dir, clips_dir, eval_dir, method="teacher", seed=seed)
+    print()
+    print((eval_dir / "table.md").read_text())
+    for side, hand in result["labelled"][0]["hands"].items():
+        quality = json.loads((labels_dir / "clip_00000" / "hands" / side / "quality.json").read_text())
+        print(f"{side} hand: {hand['valid']}/{hand['frames']} frames valid, {hand['seconds']:.2f} s "
+              f"({hand['frames'] / hand['seconds']:.0f} hand-frames/s), pass rate {quality['share_passing']:.1%}")
+        for name, row in quality["table"].items():
+            if row:
+                print(f"    {name:<40} median {row['median']:7.2f}  mean {row['mean']:7.2f}  p90 {row['p90']:7.2f}")
+    gt_jitter = metrics["metrics"]["gt_jitter"]["value"]
+    print(f"ground truth's own jitter: {gt_jitter:.2f} m/s^2; labelling took {label_seconds:.1f} s including compilation")
 
-    forward = jax.jit(mano.forward)
-    panels, paths = [], {}
-    for name, hand_pose in poses.items():
-        params = mano.ManoParams(jnp.zeros(3), hand_pose, betas, jnp.asarray([0.0, 0.0, 0.4]))
-        out_right = forward(right, params)
-        out_left = forward(left, mano.mirror_params(params))
-        panels.append((f"right: {name}", np.asarray(out_right.vertices), np.asarray(right.faces)))
-        panels.append((f"left: {name}", np.asarray(out_left.vertices), np.asarray(left.faces)))
-        stem = name.replace(" ", "_")
-        for suffix in ("obj", "ply", "glb"):
-            paths[f"right_{stem}.{suffix}"] = mano.export_mesh(right, out_right, out / f"right_{stem}.{suffix}")
-    sample = mano.ManoParams(jnp.zeros(3), poses["natural sample"], betas, jnp.asarray([0.0, 0.0, 0.4]))
-    keypoints = np.asarray(forward(right, sample).joints)
-    print("\nright hand, natural sample, wrist at (0, 0, 0.4) m: 21 keypoints (m)")
-    for name, xyz in zip(mano.KEYPOINT_NAMES, keypoints):
-        print(f"  {name:<11} {xyz[0]:+.4f} {xyz[1]:+.4f} {xyz[2]:+.4f}")
-
-    joints_only = jax.jit(jax.vmap(mano.forward_joints, in_axes=(None, 0)))
-    batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (1024,) + x.shape), sample)
-    jax.block_until_ready(joints_only(right, batch))
-    t1 = time.perf_counter()
-    jax.block_until_ready(joints_only(right, batch))
-    rate = 1024 / (time.perf_counter() - t1)
-    print(f"\njoints-only FK: {rate:,.0f} hands/s at batch 1024 (after compilation)")
-    paths["figure"] = plot_hand_meshes(panels, out / "hands.png")
-    print(f"\nwrote {len(paths)} files to {out.resolve()} (figure: {paths['figure'].name}) "
-          f"in {time.perf_counter() - t0:.1f} s")
+    print("4/4 drawing the fitted meshes over both views")
+    figure = _overlays(clip, labels_dir / "clip_00000", out / "overlays.png", seed, contact_sheet, overlay_mesh, project_views)
+    right_labels = np.load(labels_dir / "clip_00000" / "hands" / "right" / "labels.npz")
+    model = mano.load_builtin("right")
+    t = int(np.flatnonzero(right_labels["valid"])[0]) if right_labels["valid"].any() else 0
+    params = mano.ManoParams(*(jnp.asarray(right_labels[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(right_labels["betas"]), jnp.asarray(right_labels["transl"][t]))
+    mesh = mano.export_mesh(model, mano.forward(model, params), out / "right_hand_fitted.glb")
+    paths = {
+        "clip": clip_path,
+        "labels": labels_dir,
+        "metrics": eval_dir / "metrics.json",
+        "table": eval_dir / "table.md",
+        "depth_scatter": eval_dir / "depth_scatter.png",
+        "overlays": figure,
+        "mesh": mesh,
+    }
+    print(f"\ndone in {time.perf_counter() - t_start:.0f} s. Outputs:")
+    for name, path in paths.items():
+        print(f"  {name:<14} {path.resolve()}")
     return paths
+
+
+def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, project_views, num: int = 3) -> pathlib.Path:
+    """Render a few frames of both views and blend the fitted meshes over them."""
+    rig = clip.rig
+    scene = render.sample_scene(np.random.default_rng([seed, 99]))
+    T_world_rig = np.asarray(clip.meta["T_world_rig"])
+    labels = {side: np.load(labels_path / "hands" / side / "labels.npz") for side in clip.gt}
+    T = len(T_world_rig)
+    frames = np.linspace(T // 8, T - 1 - T // 8, num).astype(int)
+    colours = {"right": (236, 112, 150), "left": (90, 150, 240)}  # pink right, blue left (the paper's figures)
+    tiles, captions = [], []
+    for t in frames:
+        meshes_gt, fitted = [], []
+        for side, lab in labels.items():
+            model = mano.load_builtin(side)
+            gt = clip.gt[side]
+            gt_params = mano.ManoParams(*(jnp.asarray(gt[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(gt["betas"]), jnp.asarray(gt["transl"][t]))
+            meshes_gt.append((np.asarray(mano.forward(model, gt_params).vertices, np.float64), np.asarray(model.faces), scene.skin))
+            params = mano.ManoParams(*(jnp.asarray(lab[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(lab["betas"]), jnp.asarray(lab["transl"][t]))
+            fitted.append((side, np.asarray(mano.forward(model, params).vertices, np.float64), np.asarray(model.faces), bool(lab["valid"][t])))
+        row = []
+        for v, (camera, T_rig_cam) in enumerate(((rig.left, np.eye(4)), (rig.right, np.asarray(rig.T_left_right, np.float64)))):
+            T_cam_rig = np.linalg.inv(T_rig_cam)
+            in_cam = [(m @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3], f, a) for m, f, a in meshes_gt]
+            image, _ = render.render_view(scene, camera, T_world_rig[t] @ T_rig_cam, in_cam)
+            for side, verts, faces, ok in fitted:
+                uv = project_views(rig, verts)[v]
+                depth = (verts @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3])[:, 2]
+                if ok:
+                    image = overlay_mesh(image, uv, depth, faces, colours[side], alpha=0.55)
+            row.append(image)
+        tiles.append(row)
+        captions.append(f"frame {t}: fitted labels (pink right, blue left) over the rendered left / right views")
+    return contact_sheet(tiles, captions, path)

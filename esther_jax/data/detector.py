@@ -113,7 +113,7 @@ def simulate(
         a, b = list(FINGER_KEYPOINTS[f]), list(FINGER_KEYPOINTS[f + 1])
         uv[t, v, a + b] = uv[t, v, b + a]
     error = np.linalg.norm(uv - uv_true, axis=-1) / np.maximum(model.noise * size, 1e-6)
-    conf = 1.0 / (1.0 + np.exp(model.confidence_slope * (error - 2.5)))
+    conf = 0.5 * (1.0 - np.tanh(0.5 * model.confidence_slope * (error - 2.5)))  # logistic, overflow-free
     conf = conf * np.where(visible, 1.0, 0.55) + rng.normal(scale=model.confidence_noise, size=conf.shape)
     conf = np.clip(conf, 0.02, 1.0)
     if model.noise == 0.0:
