@@ -11,6 +11,7 @@ def main(argv: list[str] | None = None) -> int:
     demo = commands.add_parser("demo", help="run the main job on the embedded default (built-in hand model)")
     demo.add_argument("--out", default="esther_demo", help="output folder (default: ./esther_demo)")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--frames", type=int, default=128, help="frames of the synthetic clip (default 128)")
     evaluate = commands.add_parser("evaluate", help="compare label folders with ground truth; write metrics, tables, figures")
     evaluate.add_argument("--pred", required=True, help="folder of predicted labels (<clip>/hands/<side>/labels.npz)")
     evaluate.add_argument("--gt", required=True, help="folder of clips with ground truth (<clip>/hands/<side>/gt.npz)")
@@ -38,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "demo":
         from .demo import run
 
-        run(args.out, seed=args.seed)
+        run(args.out, seed=args.seed, frames=args.frames)
     elif args.command == "label":
         return _label(args)
     elif args.command == "synth":

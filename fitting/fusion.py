@@ -49,7 +49,8 @@ def fuse(
     box_score = jnp.where(jnp.isfinite(box_score), box_score, 0.0)
     sides = jnp.maximum(box[..., 2] - box[..., 0], box[..., 3] - box[..., 1])  # (2, T, 2)
     has_box = box_score > 0
-    w_b = jnp.sum(jnp.where(has_box, sides, 0.0), axis=0) / jnp.maximum(jnp.sum(has_box, axis=0), 1)  # (T, 2)
+    count = jnp.sum(has_box.astype(sides.dtype), axis=0)
+    w_b = jnp.sum(jnp.where(has_box, sides, 0.0), axis=0) / jnp.maximum(count, 1.0)  # (T, 2)
     c1, c2 = conf[0], conf[1]
     v1, v2 = c1 >= TAU, c2 >= TAU
     distance = jnp.linalg.norm(uv[0] - uv[1], axis=-1)

@@ -65,8 +65,8 @@ def prefilter(rig: StereoRig, fused: Fused, bones: Float[Array, "21"]) -> Eviden
     parents = jnp.asarray([max(p, 0) for p in KEYPOINT_PARENTS])
     children = [[c for c, p in enumerate(KEYPOINT_PARENTS) if p == j] for j in range(21)]
     length = jnp.linalg.norm(X - X[:, parents], axis=-1)  # bone to the parent, (T, 21)
-    bone_valid = valid & valid[:, parents] & (jnp.arange(21) > 0)
-    bone_bad = bone_valid & (jnp.abs(length / jnp.maximum(bones, 1e-6) - 1.0) > BONE_TOLERANCE)
+    bone_valid = valid & valid[:, parents] & (jnp.arange(21) > 0)[None]
+    bone_bad = bone_valid & (jnp.abs(length / jnp.maximum(bones, 1e-6)[None] - 1.0) > BONE_TOLERANCE)
     checked, bad = [], []
     for j in range(21):  # each joint's bones: to its parent and to its children
         own = [(bone_valid[:, j], bone_bad[:, j])] if j > 0 else []

@@ -21,7 +21,7 @@ from esther_jax.data import clip_io
 from .pipeline import LabelConfig, label_hand
 
 
-def read_reject_list(path: str | pathlib.Path) -> set[tuple[str, str, int]]:
+def read_reject_list(path: str | pathlib.Path) -> frozenset[tuple[str, str, int]]:
     """Rejected hand-frames, one `clip,side,frame` per line (# comments allowed)."""
     rejects = set()
     for number, line in enumerate(pathlib.Path(path).read_text().splitlines(), 1):
@@ -32,14 +32,14 @@ def read_reject_list(path: str | pathlib.Path) -> set[tuple[str, str, int]]:
         if len(parts) != 3 or parts[1] not in clip_io.SIDES or not parts[2].isdigit():
             raise ValueError(f"{path}:{number}: expected 'clip,side,frame' (side right|left), got {line!r}")
         rejects.add((parts[0], parts[1], int(parts[2])))
-    return rejects
+    return frozenset(rejects)
 
 
 def label_clip(
     clip_dir: str | pathlib.Path,
     out_dir: str | pathlib.Path,
     config: LabelConfig = LabelConfig(),
-    rejects: set[tuple[str, str, int]] = frozenset(),
+    rejects: frozenset[tuple[str, str, int]] = frozenset(),
     models: dict[str, mano.ManoModel] | None = None,
 ) -> dict:
     """Label every hand of one clip folder into `out_dir/<clip name>/` (atomically)."""
@@ -54,6 +54,19 @@ def label_clip(
     if tmp.exists():
         shutil.rmtree(tmp)
     summary = {"clip": clip_dir.name, "hands": {}}
+    try:
+        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, summary)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # a failed clip leaves nothing behind
+        raise
+    clip_io.write_meta(tmp, **{**meta, "labelled_by": "esther teacher"})
+    if final.exists():
+        shutil.rmtree(final)
+    tmp.rename(final)
+    return summary
+
+
+def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, summary) -> None:
     for side in sides:
         keypoints = clip_io.load_npz(clip_io.hand_file(clip_dir, side, "keypoints"), "keypoints")
         if keypoints["uv"].shape[0] != 2:
@@ -74,11 +87,6 @@ def label_clip(
             "seconds": report["seconds"],
             "notes": report.get("notes", []),
         }
-    clip_io.write_meta(tmp, **{**meta, "labelled_by": "esther teacher"})
-    if final.exists():
-        shutil.rmtree(final)
-    tmp.rename(final)
-    return summary
 
 
 def label_clips(
@@ -87,7 +95,7 @@ def label_clips(
     *,
     resume: bool = False,
     config: LabelConfig = LabelConfig(),
-    rejects: set[tuple[str, str, int]] = frozenset(),
+    rejects: frozenset[tuple[str, str, int]] = frozenset(),
     progress: bool = True,
 ) -> dict:
     """Label many clips; failures are collected, not raised."""

@@ -56,20 +56,20 @@ class FitWeights(eqx.Module):
 class FrameUnknowns(eqx.Module):
     """Unknowns of one frame: orientation, pose, wrist offset in cm (and betas in stage 1)."""
 
-    global_orient: Float[Array, "3"]
-    hand_pose: Float[Array, "15 3"]
-    transl_cm: Float[Array, "3"]
-    betas: Float[Array, "10"] | None = None
+    global_orient: Float[Array, "*batch 3"]
+    hand_pose: Float[Array, "*batch 15 3"]
+    transl_cm: Float[Array, "*batch 3"]
+    betas: Float[Array, "*batch 10"] | None = None
 
 
 class FrameData(eqx.Module):
     """Observations and anchors of one frame."""
 
-    uv: Float[Array, "2 21 2"]
-    weight: Float[Array, "2 21"]
-    anchor: Float[Array, "3"]
+    uv: Float[Array, "*batch 2 21 2"]
+    weight: Float[Array, "*batch 2 21"]
+    anchor: Float[Array, "*batch 3"]
     """Triangulated (or interpolated) wrist, rig frame, metres."""
-    anchor_weight: Float[Array, ""]
+    anchor_weight: Float[Array, "*batch"]
     """1 where the wrist was triangulated in this frame, else 0."""
 
 
@@ -113,18 +113,18 @@ def stage1_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData]):
 class Track(eqx.Module):
     """Temporal context of one frame for the motion stage (zero weights in stage 2)."""
 
-    pose_target: Float[Array, "16 3"]
+    pose_target: Float[Array, "*batch 16 3"]
     """The windowed motion prior's smoothed rotations of this frame (root first)."""
-    transl_target: Float[Array, "3"]
+    transl_target: Float[Array, "*batch 3"]
     """The smoothed wrist position (m)."""
-    weight: Float[Array, ""]
+    weight: Float[Array, "*batch"]
     """Pull towards the smoothed trajectory (0 in stage 2)."""
-    orient_previous: Float[Array, "3"]
-    orient_next: Float[Array, "3"]
-    transl_previous: Float[Array, "3"]
-    transl_next: Float[Array, "3"]
-    has_previous: Float[Array, ""]
-    has_next: Float[Array, ""]
+    orient_previous: Float[Array, "*batch 3"]
+    orient_next: Float[Array, "*batch 3"]
+    transl_previous: Float[Array, "*batch 3"]
+    transl_next: Float[Array, "*batch 3"]
+    has_previous: Float[Array, "*batch"]
+    has_next: Float[Array, "*batch"]
 
     @classmethod
     def none(cls, frames: int, dtype) -> "Track":

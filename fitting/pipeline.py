@@ -204,7 +204,7 @@ def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: floa
         "joints": np.asarray(joints)[sl],
         "onscreen": observed[sl],
         "valid": passing[sl],
-        "residual_px": np.nan_to_num(residual[sl], nan=np.inf).astype(np.float32),
+        "residual_px": residual[sl].astype(np.float32),  # NaN where the hand is not observed
         "stereo": stereo[sl],
         "converged": converged[sl],
     }
@@ -293,5 +293,5 @@ def _empty_labels(T: int, model: mano.ManoModel) -> dict:
     return {
         "global_orient": z((T, 3), np.float32), "hand_pose": z((T, 15, 3), np.float32), "betas": z(model.num_betas, np.float32),
         "transl": z((T, 3), np.float32), "joints": z((T, 21, 3), np.float32), "onscreen": z(T, bool), "valid": z(T, bool),
-        "residual_px": np.full(T, np.inf, np.float32), "stereo": z(T, bool), "converged": z(T, bool),
+        "residual_px": np.full(T, np.nan, np.float32), "stereo": z(T, bool), "converged": z(T, bool),
     }  # fmt: skip

@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+# Keep compiled solvers between runs (the teacher's take ~40 s to compile cold).
+jax.config.update("jax_compilation_cache_dir", os.environ.get("ESTHER_JAX_CACHE", os.path.expanduser("~/.cache/esther_jax/xla")))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 SHARED_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -30,7 +30,7 @@ _HAND_KEYS = {
 _LABEL_KEYS = {**_HAND_KEYS, "valid": ("T",), "residual_px": ("T",)}
 _KEYPOINT_KEYS = {"uv": ("D", "T", 2, 21, 2), "conf": ("D", "T", 2, 21), "box": ("D", "T", 2, 4), "box_score": ("D", "T", 2)}
 SCHEMAS = {"gt": _HAND_KEYS, "labels": _LABEL_KEYS, "keypoints": _KEYPOINT_KEYS}
-_NAN_ALLOWED = {"keypoints": {"uv", "box"}}
+_NAN_ALLOWED = {"keypoints": {"uv", "box"}, "labels": {"residual_px"}}  # NaN residual: hand not observed
 
 
 class ClipFormatError(ValueError):

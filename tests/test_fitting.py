@@ -1,0 +1,189 @@
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esther_jax import cameras, cli, mano, metrics
+from esther_jax.data import clip_io, motion, synth
+from fitting import fusion, initialise, label_clips, label_hand, quality
+from fitting.priors import MotionPrior, PosePrior, huber_residual
+
+FRAMES = 32  # one length bucket: the solvers compile once for the whole module
+
+
+def _detections(uv1, c1, uv2, c2, box_side=100.0, s1=0.9, s2=0.8):
+    """keypoints.npz-shaped arrays (2 detectors, 1 frame, 2 views) with every joint alike."""
+    uv = np.zeros((2, 1, 2, 21, 2))
+    uv[0], uv[1] = uv1, uv2
+    conf = np.zeros((2, 1, 2, 21))
+    conf[0], conf[1] = c1, c2
+    box = np.tile(np.array([0.0, 0.0, box_side, box_side]), (2, 1, 2, 1))
+    score = np.array([[[s1, s1]], [[s2, s2]]])
+    return [jnp.asarray(x, jnp.float32) for x in (uv, conf, box, score)]
+
+
+def test_fusion_follows_appendix_a():
+    a, b = np.array([10.0, 10.0]), np.array([15.0, 10.0])  # 5 px apart, box side 100: agree (eps = 10 px)
+    f = fusion.fuse(*_detections(a, 0.9, b, 0.6))
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), (0.9 * a + 0.6 * b) / 1.5, rtol=1e-6)
+    far = np.array([40.0, 10.0])  # 30 px apart: the more confident wins
+    f = fusion.fuse(*_detections(a, 0.5, far, 0.8))
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), far)
+    f = fusion.fuse(*_detections(a, 0.70, far, 0.72, s1=0.95, s2=0.5))  # near tie: box score decides
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), a)
+    f = fusion.fuse(*_detections(a, 0.2, far, 0.31))  # only detector 2 is valid (tau = 0.3)
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), far)
+    f = fusion.fuse(*_detections(a, 0.2, far, 0.1))  # none valid: dropped
+    assert float(f.conf[0, 0, 0]) == 0.0
+    uv, conf, box, score = _detections(a, 0.9, b, 0.9)
+    f = fusion.fuse(uv.at[0, 0, 0, 3].set(jnp.nan), conf, box, score)
+    assert float(f.num_invalid) == 1 and np.all(np.isfinite(np.asarray(f.uv)))
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 3]), b)
+
+
+def test_prefilter_rejects_implausible_depths_and_isolated_bones():
+    rig = cameras.rig_preset("esther")
+    model = mano.load_builtin("right")
+    params = mano.ManoParams(jnp.asarray([0.0, 2.0, 0.0]), jnp.zeros((15, 3)), jnp.zeros(10), jnp.asarray([0.0, 0.05, 0.4]))
+    joints = np.asarray(mano.forward_joints(model, params), np.float64)
+    joints[8] += np.array([0.0, 0.0, 0.2])  # index tip placed 20 cm behind: both its bones are off by > 40 %
+    far = joints.copy()
+    far[:, 2] += 1.0  # the whole hand beyond 1 m
+    uv = np.stack([motion_uv(rig, joints), motion_uv(rig, far)])  # (2 frames, 2, 21, 2)
+    fused = fusion.Fused(uv=jnp.asarray(uv, jnp.float32), conf=jnp.ones((2, 2, 21)), box_side=jnp.full((2, 2), 200.0), num_invalid=jnp.zeros(()))
+    ev = initialise.prefilter(rig, fused, initialise.template_bones(model))
+    w = np.asarray(ev.weight)
+    assert w[0, :, 8].sum() == 0 and w[0, :, 7].sum() > 0 and w[0, :, 0].sum() > 0
+    assert w[1].sum() == 0
+    assert float(ev.rejected_bones) >= 1 and float(ev.rejected_depth) == 21
+
+
+def motion_uv(rig, joints):
+    from esther_jax.data import detector
+
+    return detector.project_views(rig, joints[None])[0]
+
+
+def test_initialisation_recovers_the_wrist_and_orientation_without_flips():
+    rig = cameras.rig_preset("esther")
+    model = mano.load_builtin("right")
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        go = jnp.asarray(rng.normal(size=3) * 1.2, jnp.float32)
+        params = mano.ManoParams(go, jnp.asarray(rng.normal(size=(15, 3)) * 0.3, jnp.float32), jnp.zeros(10), jnp.asarray([0.02, 0.05, 0.4]))
+        joints = np.asarray(mano.forward_joints(model, params), np.float64)
+        uv = motion_uv(rig, joints)[None]
+        fused = fusion.Fused(uv=jnp.asarray(uv, jnp.float32), conf=jnp.ones((1, 2, 21)), box_side=jnp.full((1, 2), 200.0), num_invalid=jnp.zeros(()))
+        ev = initialise.prefilter(rig, fused, initialise.template_bones(model))
+        init = initialise.initialise(model, ev, jnp.zeros(10))
+        np.testing.assert_allclose(np.asarray(init.transl[0]), np.asarray(params.transl), atol=2e-3)
+        from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
+
+        angle = float(geodesic_angle(axis_angle_to_matrix(init.global_orient[0]), axis_angle_to_matrix(go)))
+        assert angle < np.deg2rad(3.0)
+
+
+def test_priors_are_residual_callables():
+    model = mano.load_builtin("right")
+    prior = PosePrior.from_model(model)
+    assert float(jnp.sum(prior(model.hands_mean.reshape(15, 3)) ** 2)) < 1e-6
+    bent_back = jnp.zeros((15, 3)).at[1].set(jnp.asarray([0.0, 0.0, -1.5]))  # index PIP hyper-extended
+    assert float(jnp.sum(prior(bent_back)[45:] ** 2)) > 1.0
+    smooth = MotionPrior()
+    line = jnp.linspace(0.0, 1.0, 16)[:, None] * jnp.ones((1, 4))
+    assert float(jnp.abs(smooth(line)).max()) < 1e-6
+    noisy = line + 0.01 * jnp.asarray(np.random.default_rng(0).normal(size=(16, 4)), jnp.float32)
+    cleaned = smooth.smooth(noisy, jnp.ones(16))
+    assert float(jnp.abs(cleaned - line).mean()) < float(jnp.abs(noisy - line).mean())
+    np.testing.assert_allclose(float(huber_residual(jnp.asarray(3.0), 1.0)) ** 2 / 2, 1.0 * (3.0 - 0.5), rtol=1e-6)
+
+
+def test_quality_table_formulas():
+    rig = cameras.rig_preset("esther")
+    r = np.full(10, 5.0)
+    z = np.full(10, 0.4)
+    q = quality.quality_table(r, z, np.ones(10, bool), rig)
+    f, b = 623.0, 0.062
+    assert q["table"]["in_plane_error_mm"]["median"] == pytest.approx(5.0 * 0.4 / f * 1000)
+    assert q["table"]["admissible_depth_error_independent_mm"]["median"] == pytest.approx(np.sqrt(2) * 5.0 * 0.16 / (f * b) * 1000)
+    assert q["table"]["admissible_depth_error_worst_mm"]["median"] == pytest.approx(2 * 5.0 * 0.16 / (f * b) * 1000)
+    assert q["share_passing"] == 1.0
+
+
+@pytest.fixture(scope="module")
+def clean_two_hands():
+    cfg = synth.SynthConfig(num_frames=FRAMES, detector_preset="easy", motion_config=motion.MotionConfig(two_hands_probability=1.0, leave_view_probability=0.0))
+    return synth.make_clip(28, 0, cfg)  # both hands stay on-screen (many clips see a hand leave)
+
+
+@pytest.mark.slow
+def test_labels_match_the_ground_truth(clean_two_hands):
+    clip = clean_two_hands
+    for side in clip.keypoints:
+        labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0)
+        gt = clip.gt[side]
+        ok = labels["valid"] & gt["onscreen"]
+        assert ok.sum() >= 0.7 * gt["onscreen"].sum()
+        pred, true = jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])
+        assert np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))[ok].mean() < 0.008
+        assert np.asarray(jax.vmap(metrics.wrist_error)(pred, true))[ok].mean() < 0.01
+        assert report["share_passing"] > 0.7 and report["table"]["reprojection_residual_px"]["median"] < 12.0
+
+
+@pytest.mark.slow
+def test_bad_inputs_are_labelled_flagged_or_reported(clean_two_hands, tmp_path):
+    clip = clean_two_hands
+    side = "right"
+    model = mano.load_builtin(side)
+    kp = {k: v.copy() for k, v in clip.keypoints[side].items()}
+    kp["uv"][:, 3, :, 5] = np.nan  # NaN keypoints
+    kp["conf"][:, 10:18, 1] = 0.0  # the right view sees nothing for 8 frames
+    labels, report = label_hand(model, clip.rig, kp, 30.0)
+    assert np.all(np.isfinite(labels["joints"]))
+    assert any("NaN" in n for n in report["notes"]) and any("one view" in n for n in report["notes"])
+    assert not labels["stereo"][10:18].any() and not labels["valid"][10:18].any() and labels["onscreen"][10:18].all()
+    never = {k: v.copy() for k, v in clip.keypoints[side].items()}
+    never["conf"][:] = 0.0
+    labels, report = label_hand(model, clip.rig, never, 30.0)
+    assert not labels["valid"].any() and "never detected" in report["notes"][0]
+    short = {k: v[:, :10] for k, v in clip.keypoints[side].items()}  # fewer frames than a window
+    labels, _ = label_hand(model, clip.rig, short, 30.0)
+    assert labels["joints"].shape == (10, 21, 3) and labels["valid"].sum() >= 5
+
+    good = synth.write_clip(clip, tmp_path / "clips" / "good")
+    zero = synth.write_clip(clip, tmp_path / "clips" / "zero_baseline")
+    rig = json.loads((zero / "rig.json").read_text())
+    rig["T_left_right"][0][3] = 0.0
+    (zero / "rig.json").write_text(json.dumps(rig))
+    missing = synth.write_clip(clip, tmp_path / "clips" / "missing_camera")
+    rig = json.loads((missing / "rig.json").read_text())
+    del rig["cameras"]["right"]
+    (missing / "rig.json").write_text(json.dumps(rig))
+    truncated = synth.write_clip(clip, tmp_path / "clips" / "truncated")
+    path = clip_io.hand_file(truncated, "left", "keypoints")
+    path.write_bytes(path.read_bytes()[:200])
+    result = label_clips([good, zero, missing, truncated], tmp_path / "labels", progress=False)
+    errors = {f["clip"].split("/")[-1]: f["error"] for f in result["failed"]}
+    assert [s["clip"] for s in result["labelled"]] == ["good"]
+    assert "baseline" in errors["zero_baseline"] and "'right' is missing" in errors["missing_camera"] and "truncated" in errors["truncated"]
+    assert not any(p.name.endswith(".partial") for p in (tmp_path / "labels").iterdir())
+
+
+@pytest.mark.slow
+def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
+    folder = synth.write_clip(clean_two_hands, tmp_path / "clips" / "c0")
+    out = tmp_path / "labels"
+    (tmp_path / "reject.txt").write_text("# reviewer's list\nc0,right,3\nc0,left,4\n")
+    assert cli.main(["label", str(tmp_path / "clips"), "--out", str(out), "--reject", str(tmp_path / "reject.txt"), "--review"]) == 0
+    labels = clip_io.load_npz(clip_io.hand_file(out / "c0", "right", "labels"), "labels")
+    assert not labels["valid"][3]
+    q = json.loads((out / "c0" / "hands" / "right" / "quality.json").read_text())
+    assert q["human_rejected_frames"] == [3]
+    stamp = (out / "c0" / "meta.json").stat().st_mtime_ns
+    assert cli.main(["label", str(folder), "--out", str(out), "--resume"]) == 0
+    assert (out / "c0" / "meta.json").stat().st_mtime_ns == stamp and "skipped 1" in capsys.readouterr().out
+    (tmp_path / "bad.txt").write_text("c0;right;3\n")
+    assert cli.main(["label", str(folder), "--out", str(out), "--reject", str(tmp_path / "bad.txt")]) == 2
+    assert (out / "c0" / "hands" / "right" / "review.png").exists() or labels["valid"][labels["onscreen"]].all()
