@@ -151,3 +151,31 @@ def initialise(model: mano.ManoModel, evidence: Evidence, betas: Float[Array, "1
         wrist_triangulated=jnp.asarray(wrist_ok),
         palm_seen=jnp.asarray(seen),
     )
+
+
+def monocular_average(rig: StereoRig, monocular: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse per-view monocular MANO estimates in the rig frame, as the paper does with
+    WiLoR: both views' estimates are moved into the rig (left) frame and averaged
+    (rotations by the chordal mean, poses and wrists arithmetically).
+
+    Args:
+        monocular: monocular.npz arrays (per view, in that camera's frame).
+    Returns:
+        global_orient (T, 3), hand_pose (T, 15, 3) in the rig frame, and which frames have one (T,).
+    """
+    from esther_jax.rotations import axis_angle_to_matrix
+
+    R_views = np.asarray(axis_angle_to_matrix(jnp.asarray(monocular["global_orient"], jnp.result_type(float))), np.float64)
+    R_left_right = np.asarray(rig.T_left_right, np.float64)[:3, :3]
+    R_views[:, 1] = np.einsum("ij,tjk->tik", R_left_right, R_views[:, 1])  # right camera -> rig frame
+    valid = np.asarray(monocular["valid"], bool)
+    w = valid.astype(np.float64)
+    summed = np.einsum("tv,tvij->tij", w, R_views)
+    U, _, Vt = np.linalg.svd(summed)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[:, :, 2] *= np.where(d == 0, 1.0, d)[:, None]
+    R = U @ Vt
+    any_view = valid.any(axis=1)
+    pose = np.einsum("tv,tvjc->tjc", w, np.asarray(monocular["hand_pose"], np.float64)) / np.maximum(w.sum(1), 1)[:, None, None]
+    orient = np.asarray(matrix_to_axis_angle(jnp.asarray(R, jnp.result_type(float))), np.float64)
+    return orient, pose, any_view

@@ -72,8 +72,10 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, summa
         if keypoints["uv"].shape[0] != 2:
             raise clip_io.ClipFormatError(f"{clip_dir}: {side} keypoints have {keypoints['uv'].shape[0]} detectors; the fusion needs 2")
         model = (models or {}).get(side) or mano.load_builtin(side)
+        mono_path = clip_io.hand_file(clip_dir, side, "monocular")
+        monocular = clip_io.load_npz(mono_path, "monocular") if mono_path.is_file() else None
         t0 = time.perf_counter()
-        labels, report = label_hand(model, rig, keypoints, float(meta["fps"]), config)
+        labels, report = label_hand(model, rig, keypoints, float(meta["fps"]), config, monocular)
         report["seconds"] = time.perf_counter() - t0
         rejected = [f for (c, s, f) in rejects if c == clip_dir.name and s == side and f < len(labels["valid"])]
         if rejected:

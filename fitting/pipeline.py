@@ -90,7 +90,10 @@ def _forward_all(model, params):
     return jax.vmap(lambda p: mano.forward_joints(model, p))(params)
 
 
-def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, config: LabelConfig = LabelConfig()) -> tuple[dict, dict]:
+def label_hand(
+    model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, config: LabelConfig = LabelConfig(),
+    monocular: dict | None = None,
+) -> tuple[dict, dict]:  # fmt: skip
     """Label one hand of one clip.
 
     Args:
@@ -98,6 +101,8 @@ def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: floa
         rig: the clip's stereo rig.
         keypoints: the keypoints.npz arrays (uv [D,T,2,21,2], conf, box, box_score).
         fps: frame rate (the velocity limits are per second).
+        monocular: optional per-view monocular MANO estimates (monocular.npz arrays);
+            where present they initialise the wrist orientation and the pose.
     Returns:
         (labels, quality): the labels.npz arrays and the quality.json content.
     """
@@ -126,6 +131,20 @@ def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: floa
 
     t1 = time.perf_counter()
     init = initialise.initialise(model, evidence, jnp.zeros(model.num_betas, dtype))
+    mono_pose = None
+    if monocular is not None:
+        orient, mono_pose_T, has = initialise.monocular_average(rig, monocular)
+        has = np.concatenate([has, np.zeros(length - T, bool)])
+        orient = np.concatenate([orient, np.zeros((length - T, 3))])
+        mono_pose = np.concatenate([mono_pose_T, np.zeros((length - T, 15, 3))])
+        mono_pose = np.where(has[:, None, None], mono_pose, np.asarray(model.hands_mean).reshape(15, 3))
+        init = initialise.Initial(
+            transl=init.transl,
+            global_orient=jnp.where(jnp.asarray(has)[:, None], jnp.asarray(orient, dtype), init.global_orient),
+            wrist_triangulated=init.wrist_triangulated,
+            palm_seen=init.palm_seen,
+        )
+        notes.append(f"initialised from monocular estimates in {int(has.sum())} frames")
     problem = Problem(
         model=model,
         rig=rig,
@@ -140,7 +159,8 @@ def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: floa
     chosen = np.argsort(-score, kind="stable")[: config.stage1_frames]
     chosen = np.sort(chosen)
     used = stereo[chosen]
-    mean_pose = jnp.broadcast_to(model.hands_mean.reshape(15, 3), (len(chosen), 15, 3))
+    start_pose = np.broadcast_to(np.asarray(model.hands_mean).reshape(15, 3), (length, 15, 3)) if mono_pose is None else mono_pose
+    mean_pose = jnp.asarray(start_pose[chosen], dtype)
     y0 = FrameUnknowns(init.global_orient[chosen], mean_pose, jnp.zeros((len(chosen), 3), dtype), jnp.zeros((len(chosen), model.num_betas), dtype))
     s1 = _solve(objectives.stage1_residuals, problem, y0, (_frame_data(evidence, init, chosen),), config.stage1_steps)
     w = used.astype(np.float64) * score[chosen].clip(0)
@@ -149,13 +169,16 @@ def label_hand(model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: floa
 
     # stage 2: per-frame pose and wrist with the betas locked
     t2 = time.perf_counter()
+    orient_start = init.global_orient
     init = initialise.initialise(model, evidence, betas)
+    if mono_pose is not None:
+        init = initialise.Initial(init.transl, orient_start, init.wrist_triangulated, init.palm_seen)
     problem = Problem(
         model=model, rig=rig, pose_prior=PosePrior.from_model(model, betas), motion_prior=MotionPrior(),
         weights=config.weights, betas=betas, fps=float(fps),
     )  # fmt: skip
     frames = np.arange(length)
-    pose0 = np.broadcast_to(np.asarray(model.hands_mean).reshape(15, 3), (length, 15, 3)).copy()
+    pose0 = np.array(start_pose, copy=True)
     pose0[chosen] = np.asarray(s1.value.hand_pose)
     orient0 = np.asarray(init.global_orient).copy()
     orient0[chosen] = np.asarray(s1.value.global_orient)

@@ -187,3 +187,34 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
     (tmp_path / "bad.txt").write_text("c0;right;3\n")
     assert cli.main(["label", str(folder), "--out", str(out), "--reject", str(tmp_path / "bad.txt")]) == 2
     assert (out / "c0" / "hands" / "right" / "review.png").exists() or labels["valid"][labels["onscreen"]].all()
+
+
+@pytest.mark.slow
+def test_monocular_estimates_initialise_the_fit(clean_two_hands):
+    """Per-view monocular MANO (as WiLoR gives), each in its camera's frame, is moved to
+    the rig frame, averaged, and used as the starting orientation and pose."""
+    from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+    clip = clean_two_hands
+    side = "left"
+    gt = clip.gt[side]
+    rng = np.random.default_rng(0)
+    T_lr = np.asarray(clip.rig.T_left_right, np.float64)
+    R_rig = np.asarray(axis_angle_to_matrix(jnp.asarray(gt["global_orient"])), np.float64)
+    R_right = np.einsum("ji,tjk->tik", T_lr[:3, :3], R_rig)  # R_right_rig @ R
+    orient = np.stack([gt["global_orient"], np.asarray(matrix_to_axis_angle(jnp.asarray(R_right, jnp.float32)))], axis=1)
+    orient = orient + rng.normal(scale=0.05, size=orient.shape)
+    pose = np.stack([gt["hand_pose"]] * 2, axis=1) + rng.normal(scale=0.1, size=(FRAMES, 2, 15, 3))
+    transl = np.stack([gt["transl"], (gt["transl"] - T_lr[:3, 3]) @ T_lr[:3, :3]], axis=1)
+    monocular = {"global_orient": orient, "hand_pose": pose, "transl": transl, "valid": np.ones((FRAMES, 2), bool)}
+    from fitting.initialise import monocular_average
+
+    avg_orient, avg_pose, has = monocular_average(clip.rig, monocular)
+    assert has.all()
+    err = np.asarray(jax.vmap(lambda a, b: __import__("esther_jax").rotations.geodesic_angle(
+        axis_angle_to_matrix(a), axis_angle_to_matrix(b)))(jnp.asarray(avg_orient, jnp.float32), jnp.asarray(gt["global_orient"])))  # fmt: skip
+    assert np.median(err) < 0.06
+    labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0, monocular=monocular)
+    assert any("monocular" in n for n in report["notes"])
+    ok = labels["valid"] & gt["onscreen"]
+    assert np.asarray(jax.vmap(metrics.p_mpjpe)(jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])))[ok].mean() < 0.008

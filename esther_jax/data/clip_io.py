@@ -5,6 +5,9 @@
       hands/<right|left>/keypoints.npz   uv [D,T,2,21,2], conf [D,T,2,21], box [D,T,2,4], box_score [D,T,2]
       hands/<side>/gt.npz                global_orient [T,3], hand_pose [T,15,3], betas [10], transl [T,3],
                                          joints [T,21,3], onscreen [T] (vertices [T,V,3] optional)
+      hands/<side>/monocular.npz         optional per-view monocular MANO (e.g. WiLoR) in each camera's
+                                         frame: global_orient [T,2,3], hand_pose [T,2,15,3], transl [T,2,3]
+                                         (wrist position), valid [T,2]; the teacher starts from it
     labels/<clip>/hands/<side>/labels.npz  the gt.npz keys + valid [T], residual_px [T]
 
 Every loader validates keys, shapes and values and says what is wrong with a file
@@ -29,7 +32,8 @@ _HAND_KEYS = {
 }
 _LABEL_KEYS = {**_HAND_KEYS, "valid": ("T",), "residual_px": ("T",)}
 _KEYPOINT_KEYS = {"uv": ("D", "T", 2, 21, 2), "conf": ("D", "T", 2, 21), "box": ("D", "T", 2, 4), "box_score": ("D", "T", 2)}
-SCHEMAS = {"gt": _HAND_KEYS, "labels": _LABEL_KEYS, "keypoints": _KEYPOINT_KEYS}
+_MONOCULAR_KEYS = {"global_orient": ("T", 2, 3), "hand_pose": ("T", 2, 15, 3), "transl": ("T", 2, 3), "valid": ("T", 2)}
+SCHEMAS = {"gt": _HAND_KEYS, "labels": _LABEL_KEYS, "keypoints": _KEYPOINT_KEYS, "monocular": _MONOCULAR_KEYS}
 _NAN_ALLOWED = {"keypoints": {"uv", "box"}, "labels": {"residual_px"}}  # NaN residual: hand not observed
 
 
