@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._math import cross, eps, safe_norm
+from ._math import chunked, cross, eps, safe_norm
 from .cameras import AbstractCamera, PinholeCamera, StereoRig
 
 MIN_WEIGHT = 0.05
@@ -207,13 +207,5 @@ def triangulate_batch(
     flat_uv = uv.reshape((n,) + uv.shape[-2:])
     flat_w = weights.reshape((n, weights.shape[-1]))
     one = jax.vmap(triangulate, in_axes=(None, None, 0, 0))
-    if n <= chunk:
-        out = one(cameras, T_rig_cams, flat_uv, flat_w)
-    else:
-        blocks = -(-n // chunk)
-        pad = blocks * chunk - n
-        padded_uv = jnp.concatenate([flat_uv, jnp.zeros((pad,) + flat_uv.shape[1:], uv.dtype)]).reshape((blocks, chunk) + flat_uv.shape[1:])
-        padded_w = jnp.concatenate([flat_w, jnp.zeros((pad, flat_w.shape[1]), weights.dtype)]).reshape(blocks, chunk, -1)
-        out = jax.lax.map(lambda a: one(cameras, T_rig_cams, a[0], a[1]), (padded_uv, padded_w))
-        out = jax.tree.map(lambda x: x.reshape((blocks * chunk,) + x.shape[2:])[:n], out)
+    out = chunked(lambda a: one(cameras, T_rig_cams, a[0], a[1]), (flat_uv, flat_w), chunk)
     return jax.tree.map(lambda x: x.reshape(batch_shape + x.shape[1:]), out)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._math import apply3, matmul3
+from .._math import apply3, chunked, matmul3
 from ..rotations import axis_angle_to_matrix
 from .constants import KEYPOINT_FROM_MANO
 from .model import ManoModel, ManoOutput, ManoParams
@@ -195,20 +195,8 @@ def forward_batch(model: ManoModel, params: ManoParams, *, chunk: int = 32) -> M
     """`jax.vmap(forward)` over a leading batch axis of `params`, run in chunks.
 
     Large batches go through `lax.map` over blocks of `chunk` hands (32 measured best
-    on a 2-core CPU, benchmarks/fk.py), which keeps the
-    per-vertex intermediates in cache and avoids faulting fresh pages: about 2x the
-    throughput of a plain vmap at B >= 1024 on CPU (benchmarks/fk.py). Same values.
+    on a 2-core CPU), which keeps the per-vertex intermediates in cache and avoids
+    faulting fresh pages: about 2x the throughput of a plain vmap at B >= 1024 on CPU
+    (benchmarks/fk.py). Same values.
     """
-    batch = params.transl.shape[0]
-    one = jax.vmap(forward, in_axes=(None, 0))
-    if batch <= chunk:
-        return one(model, params)
-    blocks = -(-batch // chunk)
-    pad = blocks * chunk - batch
-
-    def to_blocks(x):
-        x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
-        return x.reshape((blocks, chunk) + x.shape[1:])
-
-    out = jax.lax.map(lambda p: one(model, p), jax.tree.map(to_blocks, params))
-    return jax.tree.map(lambda x: x.reshape((blocks * chunk,) + x.shape[2:])[:batch], out)
+    return chunked(lambda p: jax.vmap(forward, in_axes=(None, 0))(model, p), params, chunk)
