@@ -193,7 +193,7 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
 def test_monocular_estimates_initialise_the_fit(clean_two_hands):
     """Per-view monocular MANO (as WiLoR gives), each in its camera's frame, is moved to
     the rig frame, averaged, and used as the starting orientation and pose."""
-    from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+    from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle
 
     clip = clean_two_hands
     side = "left"
@@ -211,8 +211,8 @@ def test_monocular_estimates_initialise_the_fit(clean_two_hands):
 
     avg_orient, avg_pose, has = monocular_average(clip.rig, monocular)
     assert has.all()
-    err = np.asarray(jax.vmap(lambda a, b: __import__("esther_jax").rotations.geodesic_angle(
-        axis_angle_to_matrix(a), axis_angle_to_matrix(b)))(jnp.asarray(avg_orient, jnp.float32), jnp.asarray(gt["global_orient"])))  # fmt: skip
+    angle = lambda a, b: geodesic_angle(axis_angle_to_matrix(a), axis_angle_to_matrix(b))  # noqa: E731
+    err = np.asarray(jax.vmap(angle)(jnp.asarray(avg_orient, jnp.float32), jnp.asarray(gt["global_orient"])))
     assert np.median(err) < 0.06
     labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0, monocular=monocular)
     assert any("monocular" in n for n in report["notes"])

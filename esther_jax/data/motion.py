@@ -34,7 +34,7 @@ import numpy as np
 from .. import mano, metrics
 from ..cameras import StereoRig
 from ..mano.anatomy import JOINT_LIMITS
-from ..mano.builtin_generator import ARCHETYPES, _archetype_angles
+from ..mano.builtin_generator import ARCHETYPES, archetype_angles
 from ..rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 FPS = 30.0
@@ -136,7 +136,7 @@ def wrist_orientations(rng: np.random.Generator, T: int, cfg: MotionConfig) -> n
 def articulation(rng: np.random.Generator, T: int, cfg: MotionConfig, frames: np.ndarray) -> np.ndarray:
     """(T, 15, 3) right-hand poses (axis-angle) moving through natural-pose keyframes."""
     names = list(ARCHETYPES)
-    table = np.stack([_archetype_angles(n) for n in names])
+    table = np.stack([archetype_angles(n) for n in names])
     times = _key_times(rng, T / cfg.fps, 0.4, 1.2)
     a, b = rng.integers(len(names), size=(2, len(times)))
     mix = rng.uniform(size=(len(times), 1, 1))

@@ -484,7 +484,7 @@ ARCHETYPES = {
 }  # fmt: skip
 
 
-def _archetype_angles(name: str) -> np.ndarray:
+def archetype_angles(name: str) -> np.ndarray:
     """(15, 3) anatomical (flexion, abduction, twist) angles in radians of an archetype."""
     fingers, thumb, spread = ARCHETYPES[name]
     angles = np.zeros((15, 3))
@@ -507,7 +507,7 @@ def natural_pose_angles(num: int, seed: int = 0) -> np.ndarray:
 
     rng = np.random.default_rng(seed)
     names = list(ARCHETYPES)
-    table = np.stack([_archetype_angles(n) for n in names])
+    table = np.stack([archetype_angles(n) for n in names])
     a = rng.integers(len(names), size=num)
     b = rng.integers(len(names), size=num)
     t = rng.uniform(size=(num, 1, 1))
