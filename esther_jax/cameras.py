@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._io import read_json
 from ._math import eps
 
 _Z_MIN = 1e-6
@@ -290,14 +291,7 @@ class StereoRig(eqx.Module):
     @classmethod
     def from_json(cls, path: str | pathlib.Path) -> "StereoRig":
         """Read `rig.json` (ARCHITECTURE.md, "File formats"), validating it."""
-        path = pathlib.Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except OSError as err:
-            raise ValueError(f"cannot read rig file {path}: {err.strerror or err}") from err
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path} is not valid JSON ({err.msg} at line {err.lineno})") from err
-        return cls.from_dict(data, source=str(path))
+        return cls.from_dict(read_json(path), source=str(path))
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "rig") -> "StereoRig":

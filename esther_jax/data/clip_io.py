@@ -20,6 +20,8 @@ import zipfile
 
 import numpy as np
 
+from .._io import read_json
+
 SIDES = ("right", "left")
 
 _HAND_KEYS = {
@@ -91,12 +93,7 @@ def _format(spec) -> str:
 def read_meta(clip_dir: str | pathlib.Path) -> dict:
     """`meta.json` of a clip: at least fps and num_frames."""
     path = pathlib.Path(clip_dir) / "meta.json"
-    try:
-        meta = json.loads(path.read_text())
-    except OSError as err:
-        raise ClipFormatError(f"cannot read {path}: {err.strerror or err}") from err
-    except json.JSONDecodeError as err:
-        raise ClipFormatError(f"{path} is not valid JSON ({err.msg})") from err
+    meta = read_json(path, ClipFormatError)
     for key in ("fps", "num_frames"):
         if key not in meta:
             raise ClipFormatError(f"{path}: '{key}' is missing")
