@@ -136,7 +136,8 @@ def initialise(model: mano.ManoModel, evidence: Evidence, betas: Float[Array, "1
     seen = weights.sum(axis=1) >= 3
     R = _kabsch(P, Q, weights)
     if seen.any():
-        nearest = np.array([np.flatnonzero(seen)[np.argmin(np.abs(np.flatnonzero(seen) - t))] for t in range(T)])
+        seen_at = np.flatnonzero(seen)
+        nearest = seen_at[np.argmin(np.abs(seen_at[None, :] - np.arange(T)[:, None]), axis=1)]
         R = R[nearest]
     else:  # the palm is never triangulated: an egocentric default (fingers forward, back of the hand up)
         R_ego = np.array([[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]])

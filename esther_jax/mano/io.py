@@ -233,16 +233,11 @@ def load_mano_pkl(
     )
 
 
-def _palm_geometry(v: np.ndarray, J_regressor: np.ndarray):
-    J = J_regressor @ v
-    wrist, index, pinky, thumb = J[0], J[1], J[7], J[14]
-    return J, wrist, index, pinky, thumb
-
-
 def _side_from_geometry(v: np.ndarray, arrays: dict) -> str:
     """Handedness from the rest skeleton: the thumb sits on the palmar side of the
     palm plane spanned by (index - wrist) x (pinky - wrist) for a right hand."""
-    _, wrist, index, pinky, thumb = _palm_geometry(v, arrays["J_regressor"])
+    J = arrays["J_regressor"] @ v
+    wrist, index, pinky, thumb = J[0], J[1], J[7], J[14]
     palmar_right = np.cross(index - wrist, pinky - wrist)
     return "right" if np.dot(palmar_right, thumb - wrist) > 0 else "left"
 
