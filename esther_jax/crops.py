@@ -162,6 +162,16 @@ def patch_centres(size: int, grid: int) -> Float[Array, "grid grid 2"]:
     return jnp.stack([u, v], -1)
 
 
+def crop_poses(R_cam_crop: Float[Array, "*batch views 3 3"], T_rig_cams: Float[Array, "views 4 4"]) -> Float[Array, "*batch views 4 4"]:
+    """Pose `T_rig_crop` of each view's crop camera in the rig frame: the source camera's
+    pose with the crop's rotation `R_cam_crop` applied (same centre)."""
+    R = jnp.einsum("vij,...vjk->...vik", T_rig_cams[:, :3, :3], R_cam_crop)
+    t = jnp.broadcast_to(T_rig_cams[:, :3, 3], R.shape[:-1])
+    top = jnp.concatenate([R, t[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 0.0, 1.0], R.dtype), R.shape[:-2] + (1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
 def plucker_rays(crop: Crop, T_rig_cam: Float[Array, "4 4"], grid: int) -> Float[Array, "grid grid 6"]:
     """Plucker coordinates (unit direction d, moment m = o x d) in the rig frame of the
     rays through the patch centres of a crop (grid = S for every pixel).
@@ -182,6 +192,7 @@ __all__ = [
     "Crop",
     "RECTIFICATION_STRATEGIES",
     "crop_affine",
+    "crop_poses",
     "crop_camera",
     "patch_centres",
     "plucker_rays",

@@ -1,7 +1,7 @@
 """MANO hand model: arrays, parameters, forward kinematics, conventions, I/O.
 
 Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch`, `forward_joints`,
-`with_shape`, `with_pose`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
+`forward_rotations`, `with_shape`, `with_pose`, `with_rotations`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
 `save_mano_pkl`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
 `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`, `export_mesh`,
 `anatomical_frames`, `JOINT_LIMITS`, and the joint-order constants.
@@ -30,8 +30,10 @@ from .io import save_mano_pkl as save_mano_pkl
 from .kinematics import forward as forward
 from .kinematics import forward_batch as forward_batch
 from .kinematics import forward_joints as forward_joints
+from .kinematics import forward_rotations as forward_rotations
 from .kinematics import rest_joints as rest_joints
 from .kinematics import with_pose as with_pose
+from .kinematics import with_rotations as with_rotations
 from .kinematics import with_shape as with_shape
 from .model import ManoModel as ManoModel
 from .model import ManoOutput as ManoOutput

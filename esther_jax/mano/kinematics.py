@@ -48,21 +48,28 @@ def with_shape(model: ManoModel, betas: Float[Array, "betas"]) -> ShapedHand:
 
 
 def with_pose(model: ManoModel, shaped: ShapedHand, params: ManoParams) -> PosedHand:
-    """Chain the local rotations down MANO's tree; the wrist lands at `params.transl`.
+    """Chain the axis-angle pose of `params` down MANO's tree (see `with_rotations`)."""
+    pose = jnp.concatenate([params.global_orient[None], params.hand_pose], axis=0)
+    return with_rotations(model, shaped, axis_angle_to_matrix(pose), params.transl)
 
-    World rotation `R_j = R_parent @ R_local_j`, position
-    `t_j = t_parent + R_parent @ (J_j - J_parent)`, root `(R_global, transl)`.
+
+def with_rotations(
+    model: ManoModel, shaped: ShapedHand, local: Float[Array, "16 3 3"], transl: Float[Array, "3"]
+) -> PosedHand:
+    """Chain local joint rotations down MANO's tree; the wrist lands at `transl`.
+
+    `local[0]` is the global orientation, `local[j]` joint j's rotation relative to its
+    parent (what a network's 6D head emits). World rotation `R_j = R_parent @ R_local_j`,
+    position `t_j = t_parent + R_parent @ (J_j - J_parent)`, root `(R_global, transl)`.
     The tree is static, so the chain runs level by level (root, then the five
     fingers' first, second and third joints) as three batched products.
     """
-    pose = jnp.concatenate([params.global_orient[None], params.hand_pose], axis=0)
-    local = axis_angle_to_matrix(pose)
     parents = model.parents
     levels = _levels(parents)
     rot = [None] * 16
     pos = [None] * 16
     rot[0] = local[0]
-    pos[0] = params.transl
+    pos[0] = transl
     for level in levels[1:]:
         idx = jnp.asarray(level)
         par = [parents[j] for j in level]
@@ -158,7 +165,23 @@ def forward(model: ManoModel, params: ManoParams) -> ManoOutput:
     """
     params = _check_params(model, params)
     shaped = with_shape(model, params.betas)
-    posed = with_pose(model, shaped, params)
+    return _posed_output(model, shaped, with_pose(model, shaped, params))
+
+
+def forward_rotations(
+    model: ManoModel, local: Float[Array, "16 3 3"], betas: Float[Array, "betas"], transl: Float[Array, "3"]
+) -> ManoOutput:
+    """`forward` from local joint rotation matrices (row 0 global) instead of axis-angle.
+
+    What a network with rotation-matrix or 6D outputs calls: no log/exp round trip.
+    """
+    if local.shape != (16, 3, 3) or transl.shape != (3,):
+        raise ValueError(f"forward_rotations takes one hand: local (16, 3, 3), transl (3,); got {local.shape}, {transl.shape}")
+    shaped = with_shape(model, betas)
+    return _posed_output(model, shaped, with_rotations(model, shaped, local, transl))
+
+
+def _posed_output(model: ManoModel, shaped: ShapedHand, posed: PosedHand) -> ManoOutput:
     vertices = _skin(model, posed, shaped, _rest_vertices(model, None, shaped, posed), model.weights)
     tips = vertices[model.fingertip_ids]
     return ManoOutput(vertices=vertices, joints=_keypoints(posed, tips), transforms=_homogeneous(posed))

@@ -1,0 +1,352 @@
+"""ESTHER: backbone -> stereo image encoder -> masked motion encoder -> fusion decoder -> MANO.
+
+`ESTHER(cfg, key=...)` holds the weights; `model(clip, hand_model, motion_mask=...)`
+runs one right-hand clip (vmap for batches). The hand model is data, not weights: it
+is passed beside the network. `predict` is the inference entry point (left hands by
+mirroring, on-screen gating); `save`/`load` write a folder with the JSON config and
+the serialised leaves.
+"""
+
+import dataclasses
+import os
+import pathlib
+import shutil
+import tempfile
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
+from ..rotations import matrix_to_axis_angle
+from ._layers import broadcasting
+from .backbones import ConvStem, ViT, make_backbone
+from .config import ModelConfig, config
+from .fusion_decoder import Decoded, FusionDecoder, evidence_statistics
+from .motion_encoder import MotionEncoder, MotionEvidence
+from .stereo_encoder import NUM_KEYPOINTS, ImageEvidence, StereoImageEncoder
+
+_MIRROR = (-1.0, 1.0, 1.0)
+
+
+class ClipInput(eqx.Module):
+    """What the network sees of one hand in one clip (views: 0 left, 1 right).
+
+    Exactly one of `images` and `features` is needed: features are the backbone's patch
+    tokens of the same crops (`extract_features`), the usual input with a frozen backbone.
+    """
+
+    images: Float[Array, "*batch T 2 3 S S"] | None
+    """Hand crops, RGB in [0, 1], channels first."""
+    features: Float[Array, "*batch T 2 P C"] | None
+    """Precomputed backbone patch tokens of the crops."""
+    K: Float[Array, "*batch T 2 3 3"]
+    """Crop-camera intrinsics (pixels of the S x S crop)."""
+    R_cam_crop: Float[Array, "*batch T 2 3 3"]
+    """Rotation of each crop camera in its source camera (identity for axis-aligned crops)."""
+    T_rig_cams: Float[Array, "*batch 2 4 4"]
+    """Pose of each source camera in the rig frame (the left camera's)."""
+    flow: Float[Array, "*batch T 192"]
+    """Camera-motion flow token per frame (appendix D; computed on the left view)."""
+    view_present: Bool[Array, "*batch T 2"]
+    """False where a view is missing or blanked: it is replaced by the view-mask token."""
+
+
+class ESTHEROutput(eqx.Module):
+    """Everything the network computes for one clip (right hand, rig frame, metres)."""
+
+    image: ImageEvidence
+    motion: MotionEvidence
+    decoded: Decoded
+    params: ManoParams
+    """Per frame (betas repeated): axis-angle pose, betas, wrist translation."""
+    joints: Float[Array, "T 21 3"]
+    vertices: Float[Array, "T V 3"]
+
+
+class ESTHER(eqx.Module):
+    backbone: ViT | ConvStem | None
+    """None when the config reads precomputed features."""
+    image_encoder: StereoImageEncoder
+    motion_encoder: MotionEncoder
+    fusion_decoder: FusionDecoder
+    config: ModelConfig = eqx.field(static=True)
+
+    def __init__(self, cfg: ModelConfig | str = "paper", *, key: PRNGKeyArray):
+        cfg = config(cfg) if isinstance(cfg, str) else cfg
+        k0, k1, k2, k3 = jax.random.split(key, 4)
+        self.backbone = None if cfg.precomputed_features else make_backbone(cfg.backbone_spec, key=k0)
+        self.image_encoder = StereoImageEncoder(cfg, key=k1)
+        self.motion_encoder = MotionEncoder(cfg, key=k2)
+        self.fusion_decoder = FusionDecoder(cfg, key=k3)
+        self.config = cfg
+
+    def patch_features(self, clip: ClipInput) -> Float[Array, "T 2 P C"]:
+        """The backbone's patch tokens of the clip's crops (or its precomputed features)."""
+        cfg = self.config
+        if clip.features is not None:
+            return clip.features
+        if clip.images is None:
+            raise ValueError("ClipInput has neither images nor features")
+        if self.backbone is None:
+            raise ValueError(f"config {cfg.name!r} reads precomputed features (precomputed_features=True); got images only")
+        S = cfg.crop_size
+        if clip.images.shape[-3:] != (3, S, S) or clip.images.shape[-4] != 2:
+            raise ValueError(f"images must be (T, 2, 3, {S}, {S}) for config {cfg.name!r}; got {clip.images.shape}")
+        features = self.backbone(clip.images)
+        return jax.lax.stop_gradient(features) if cfg.freeze_backbone else features
+
+    @broadcasting
+    def __call__(
+        self, clip: ClipInput, hand_model: ManoModel, *, motion_mask: Bool[Array, "T 21"] | None = None
+    ) -> ESTHEROutput:
+        """Run one right-hand clip.
+
+        Args:
+            clip: one clip (no batch axis; vmap for batches).
+            hand_model: the MANO-format model for the forward kinematics (a right hand).
+            motion_mask: True where the motion encoder must not see F (training's token
+                masking); the decoder reads the motion mask token there too.
+        """
+        cfg = self.config
+        T = clip.flow.shape[0]
+        if clip.view_present.shape != (T, 2) or clip.K.shape != (T, 2, 3, 3) or clip.T_rig_cams.shape != (2, 4, 4):
+            raise ValueError(
+                f"ClipInput of one clip: flow (T, 192), view_present (T, 2), K (T, 2, 3, 3), T_rig_cams (2, 4, 4); got "
+                f"{clip.flow.shape}, {clip.view_present.shape}, {clip.K.shape}, {clip.T_rig_cams.shape} (vmap over clips)"
+            )
+        if T > cfg.num_frames:
+            raise ValueError(f"clip has {T} frames; config {cfg.name!r} was built for at most {cfg.num_frames}")
+        present = clip.view_present
+        if cfg.monocular:
+            present = present & jnp.asarray([True, False])
+        mask = jnp.zeros((T, NUM_KEYPOINTS), bool) if motion_mask is None else motion_mask
+        image = self.image_encoder(self.patch_features(clip), clip.K, clip.R_cam_crop, clip.T_rig_cams, present)
+        masked = self.motion_encoder.mask(image.features, mask)
+        motion = self.motion_encoder(masked, clip.flow)
+        evidence = evidence_statistics(image, present, mask)
+        wrist_valid = image.triangulation_valid[:, 0] & ~mask[:, 0]
+        decoded = self.fusion_decoder(masked, motion, evidence, image.triangulated[:, 0], wrist_valid)
+        hands = jax.vmap(forward_rotations, in_axes=(None, 0, None, 0))(
+            hand_model, decoded.rotations, decoded.betas, decoded.transl
+        )
+        axis_angle = matrix_to_axis_angle(decoded.rotations)
+        params = ManoParams(
+            global_orient=axis_angle[:, 0],
+            hand_pose=axis_angle[:, 1:],
+            betas=jnp.broadcast_to(decoded.betas, (T, decoded.betas.shape[0])),
+            transl=decoded.transl,
+        )
+        return ESTHEROutput(image=image, motion=motion, decoded=decoded, params=params, joints=hands.joints, vertices=hands.vertices)
+
+
+def trainable(model: ESTHER):
+    """Filter spec (a pytree of bools like `model`) of the weights training updates:
+    every inexact array except a frozen backbone's. Use with `eqx.partition`."""
+    spec = jax.tree.map(eqx.is_inexact_array, model)
+    if model.backbone is not None and model.config.freeze_backbone:
+        spec = eqx.tree_at(lambda m: m.backbone, spec, jax.tree.map(lambda _: False, model.backbone))
+    return spec
+
+
+def extract_features(backbone: ViT | ConvStem, images: Float[Array, "*batch 2 3 S S"]) -> Float[Array, "*batch 2 P C"]:
+    """Backbone patch tokens of crops, one frame at a time (bounded memory): what a
+    frozen-backbone training set stores once (`ClipInput.features`)."""
+    lead = images.shape[:-4]
+    flat = images.reshape((-1,) + images.shape[-4:])
+    out = jax.lax.map(backbone, flat)
+    return out.reshape(lead + out.shape[1:])
+
+
+def parameter_counts(name: str | ModelConfig = "paper") -> dict[str, int]:
+    """Parameter counts by part, from shapes only (`eqx.filter_eval_shape`, nothing allocated).
+
+    Keys: image_encoder (stereo blocks and heads), motion_encoder, fusion_decoder,
+    trainable (their sum, plus the backbone when it is not frozen), backbone, total.
+    """
+    cfg = config(name) if isinstance(name, str) else name
+    shapes = eqx.filter_eval_shape(ESTHER, cfg.replace(precomputed_features=True), key=jax.random.key(0))
+    backbone = eqx.filter_eval_shape(make_backbone, cfg.backbone_spec, key=jax.random.key(0))
+
+    def count(tree) -> int:
+        return int(sum(np.prod(leaf.shape, dtype=np.int64) for leaf in jax.tree.leaves(tree) if hasattr(leaf, "shape")))
+
+    parts = {
+        "image_encoder": count(shapes.image_encoder),
+        "motion_encoder": count(shapes.motion_encoder),
+        "fusion_decoder": count(shapes.fusion_decoder),
+    }
+    parts["backbone"] = count(backbone)
+    head = sum(parts[k] for k in ("image_encoder", "motion_encoder", "fusion_decoder"))
+    parts["trainable"] = head + (0 if cfg.freeze_backbone else parts["backbone"])
+    parts["total"] = head + parts["backbone"]
+    return parts
+
+
+# ----------------------------------------------------------------------------- left hands
+
+
+def _mirror_transform(T: Float[Array, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
+    """`M T M` with `M = diag(-1, 1, 1, 1)`: a rigid transform seen in the mirror world."""
+    m = jnp.asarray(_MIRROR + (1.0,), T.dtype)
+    return T * m[:, None] * m[None, :]
+
+
+@broadcasting
+def mirror_clip(clip: ClipInput) -> ClipInput:
+    """The mirror image of a clip (x -> -x in the rig frame), views swapped.
+
+    A left hand becomes a right hand seen by a rig whose left camera is the mirrored
+    right camera: crops are flipped horizontally (u -> S - 1 - u), crop rotations and
+    camera poses conjugated by the mirror, and the rig frame moved to the new left
+    camera. The flow token is mirrored (the left view's flow stands in for the new left
+    view's). Mirroring twice gives the input back when its rig frame is its left camera.
+    Leading batch axes are kept.
+    """
+    if clip.images is None:
+        raise ValueError("cannot mirror precomputed features: mirror the crops (mirror_clip), then extract_features")
+    size = clip.images.shape[-1]
+    m3 = jnp.asarray(_MIRROR, clip.K.dtype)
+    K = clip.K[..., ::-1, :, :]
+    K = K.at[..., 0, 2].set(size - 1.0 - K[..., 0, 2])
+    T_mirror = _mirror_transform(clip.T_rig_cams)[..., ::-1, :, :]
+    lead = clip.flow.shape[:-1]
+    flow_grid = clip.flow[..., :128].reshape(lead + (8, 8, 2))[..., ::-1, :] * jnp.asarray([-1.0, 1.0], clip.flow.dtype)
+    flow_flags = clip.flow[..., 128:].reshape(lead + (8, 8))[..., ::-1]
+    return ClipInput(
+        images=clip.images[..., ::-1, :, :, :][..., ::-1],
+        features=None,
+        K=K,
+        R_cam_crop=clip.R_cam_crop[..., ::-1, :, :] * m3[:, None] * m3[None, :],
+        T_rig_cams=jnp.linalg.inv(T_mirror[..., :1, :, :]) @ T_mirror,
+        flow=jnp.concatenate([flow_grid.reshape(lead + (128,)), flow_flags.reshape(lead + (64,))], axis=-1),
+        view_present=clip.view_present[..., ::-1],
+    )
+
+
+class HandPrediction(eqx.Module):
+    """What `predict` emits per clip and frame (the input's rig frame, metres)."""
+
+    params: ManoParams
+    """MANO parameters of the hand's own side (left-hand convention for left hands)."""
+    joints: Float[Array, "*batch T 21 3"]
+    vertices: Float[Array, "*batch T V 3"]
+    onscreen_prob: Float[Array, "*batch T"]
+    emitted: Bool[Array, "*batch T"]
+    """On-screen probability above the threshold: the frames whose hand is emitted."""
+
+
+@broadcasting
+def unmirror(out: HandPrediction, T_rig_cams: Float[Array, "2 4 4"]) -> HandPrediction:
+    """Bring one clip's prediction on `mirror_clip(clip)` back to `clip` (a left hand)."""
+    T1 = T_rig_cams[1]
+
+    def points(x):
+        return mirror_points(x) @ T1[:3, :3].T + T1[:3, 3]
+
+    params = jax.vmap(lambda p: transform_params(T1, mirror_params(p)))(out.params)
+    return dataclasses.replace(out, params=params, joints=points(out.joints), vertices=points(out.vertices))
+
+
+@eqx.filter_jit
+def _predict(model: ESTHER, clips: ClipInput, hand_model: ManoModel, is_right: Bool[Array, "batch"], threshold: float):
+    def one(clip, right):
+        seen = jax.tree.map(lambda a, b: jnp.where(right, a, b), clip, mirror_clip(clip)) if clip.images is not None else clip
+        out = model(seen, hand_model)
+        prob = jax.nn.sigmoid(out.motion.onscreen_logits)
+        pred = HandPrediction(params=out.params, joints=out.joints, vertices=out.vertices, onscreen_prob=prob, emitted=prob > threshold)
+        if clip.images is None:
+            return pred
+        return jax.tree.map(lambda a, b: jnp.where(right, a, b), pred, unmirror(pred, clip.T_rig_cams))
+
+    return jax.vmap(one)(clips, is_right)
+
+
+def predict(
+    model: ESTHER,
+    clip_batch: ClipInput,
+    hand_model: ManoModel | None = None,
+    *,
+    is_right: bool | np.ndarray = True,
+    threshold: float = 0.5,
+) -> HandPrediction:
+    """Hands of a batch of clips (leading batch axis), gated by the on-screen probability.
+
+    Right hands go straight through; left hands (`is_right` False, per clip or for
+    all) are mirrored with their views swapped (`mirror_clip`), predicted as right
+    hands and un-mirrored (`unmirror`), as the paper and WiLoR do. Frames whose
+    on-screen probability is at most `threshold` are not emitted (`emitted` False).
+    `hand_model` defaults to the built-in right hand.
+    """
+    batch = clip_batch.flow.shape[0] if clip_batch.flow.ndim == 3 else None
+    if batch is None:
+        raise ValueError(f"predict takes a batch of clips (flow (B, T, 192)); got flow {clip_batch.flow.shape}. Add a leading axis.")
+    right = np.broadcast_to(np.asarray(is_right, bool), (batch,))
+    if clip_batch.images is None and not right.all():
+        raise ValueError("left hands need crops to mirror; precomputed features must be extracted from mirrored crops")
+    hand_model = load_builtin("right") if hand_model is None else hand_model
+    return _predict(model, clip_batch, hand_model, jnp.asarray(right), threshold)
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def clip_input_from_crops(crops: dict[str, np.ndarray], T_rig_cams: np.ndarray, view_present: np.ndarray | None = None) -> ClipInput:
+    """A `ClipInput` from one hand's stored crops (`crops/<side>.npz` of a clip:
+    images (T, 2, S, S[, 3]) uint8, K, R_cam_crop, flow) and the rig's camera poses."""
+    images = np.asarray(crops["images"])
+    if images.ndim == 4:  # grayscale rigs: replicate to RGB
+        images = np.repeat(images[..., None], 3, axis=-1)
+    if images.ndim != 5 or images.shape[1] != 2 or images.shape[-1] != 3:
+        raise ValueError(f"crop images must be (T, 2, S, S[, 3]); got {crops['images'].shape}")
+    dtype = jnp.result_type(float)
+    T = images.shape[0]
+    present = np.ones((T, 2), bool) if view_present is None else np.asarray(view_present, bool)
+    return ClipInput(
+        images=jnp.asarray(np.moveaxis(images, -1, 2), dtype) / 255.0,
+        features=None,
+        K=jnp.asarray(crops["K"], dtype),
+        R_cam_crop=jnp.asarray(crops["R_cam_crop"], dtype),
+        T_rig_cams=jnp.asarray(T_rig_cams, dtype),
+        flow=jnp.asarray(crops["flow"], dtype),
+        view_present=jnp.asarray(present),
+    )
+
+
+# ----------------------------------------------------------------------------- save / load
+
+WEIGHTS_FILE = "weights.eqx"
+CONFIG_FILE = "config.json"
+
+
+def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
+    """Write `config.json` and `weights.eqx` (`eqx.tree_serialise_leaves`) atomically."""
+    folder = pathlib.Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        (tmp / CONFIG_FILE).write_text(model.config.to_json())
+        eqx.tree_serialise_leaves(tmp / WEIGHTS_FILE, model)
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return folder
+
+
+def load(folder: str | pathlib.Path) -> ESTHER:
+    """A model written by `save`: its config rebuilds the structure from shapes, then the
+    leaves are read (no training code needed)."""
+    folder = pathlib.Path(folder)
+    for name in (CONFIG_FILE, WEIGHTS_FILE):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"{folder} is not a saved ESTHER model: {name} is missing")
+    cfg = ModelConfig.from_json((folder / CONFIG_FILE).read_text())
+    skeleton = eqx.filter_eval_shape(ESTHER, cfg, key=jax.random.key(0))
+    try:
+        return eqx.tree_deserialise_leaves(folder / WEIGHTS_FILE, skeleton)
+    except Exception as err:
+        raise ValueError(f"{folder / WEIGHTS_FILE} does not match its config.json ({cfg.name}): {err}") from err
