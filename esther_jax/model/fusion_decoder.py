@@ -21,6 +21,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._math import matmul3
 from ..mano.constants import MANO_PARENTS
+from ..mano.kinematics import _levels
 from ..rotations import matrix_to_rotation_6d, rotation_6d_to_matrix
 from ._layers import Attention, LayerNorm, Mlp, _trunc_normal, broadcasting
 from .config import ModelConfig
@@ -133,14 +134,10 @@ def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"]) -> tuple[Floa
     output depends only on its own and its ancestors' tokens.
     """
     dtype = tokens.dtype
-    depth = []
-    for p in MANO_PARENTS:
-        depth.append(0 if p < 0 else depth[p] + 1)
     local6 = [None] * NUM_POSE_TOKENS
     world = [None] * NUM_POSE_TOKENS
     identity6 = jnp.asarray(_IDENTITY_6D, dtype)
-    for level in range(max(depth) + 1):
-        joints = [j for j in range(NUM_POSE_TOKENS) if depth[j] == level]
+    for joints in _levels(MANO_PARENTS):
         parent6 = jnp.stack([identity6 if MANO_PARENTS[j] < 0 else matrix_to_rotation_6d(world[MANO_PARENTS[j]]) for j in joints])
         out = head(jnp.concatenate([tokens[jnp.asarray(joints)], parent6], axis=-1)) + identity6
         R = rotation_6d_to_matrix(out)
