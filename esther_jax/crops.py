@@ -189,11 +189,11 @@ def plucker_rays(crop: Crop, T_rig_cam: Float[Array, "4 4"], grid: int) -> Float
 
 
 __all__ = [
-    "Crop",
     "RECTIFICATION_STRATEGIES",
+    "Crop",
     "crop_affine",
-    "crop_poses",
     "crop_camera",
+    "crop_poses",
     "patch_centres",
     "plucker_rays",
     "rectification_map",

@@ -30,7 +30,7 @@ def random_clip(key, cfg=TINY, frames=FRAMES, features=False):
     """A clip whose crop cameras look at a hand ~0.4 m ahead (both views see it)."""
     S = cfg.crop_size
     rig = rig_preset("esther")
-    k1, k2, k3 = jax.random.split(key, 3)
+    k1, k2 = jax.random.split(key)
     f = 1.2 * S
     K = jnp.asarray([[f, 0.0, S / 2 - 0.5], [0.0, f, S / 2 - 0.5], [0.0, 0.0, 1.0]])
     # aim each crop camera at (0, 0.05, 0.4) in the rig frame
@@ -168,7 +168,7 @@ def test_masked_frames_change_nothing_the_mask_hides(tiny_net, hand_model):
     changed = dataclasses.replace(clip, images=clip.images.at[2].set(1.0 - clip.images[2]))
     out2 = run(tiny_net, changed, hand_model, motion_mask=mask)
     assert not np.allclose(out.image.features[2], out2.image.features[2])  # the image encoder saw it
-    hidden = lambda o: (o.motion, o.decoded, o.params, o.joints, o.vertices)  # noqa: E731
+    hidden = lambda o: (o.motion, o.decoded, o.params, o.joints, o.vertices)
     for a, b in zip(jax.tree.leaves(hidden(out)), jax.tree.leaves(hidden(out2))):
         np.testing.assert_array_equal(a, b)
     # a single masked joint slot: the motion encoder never reads its feature

@@ -188,10 +188,10 @@ def parameter_counts(name: str | ModelConfig = "paper") -> dict[str, int]:
 # ----------------------------------------------------------------------------- left hands
 
 
-def _mirror_transform(T: Float[Array, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
-    """`M T M` with `M = diag(-1, 1, 1, 1)`: a rigid transform seen in the mirror world."""
-    m = jnp.asarray(_MIRROR + (1.0,), T.dtype)
-    return T * m[:, None] * m[None, :]
+def _mirror_conjugate(A: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+    """`M A M` with `M = diag(-1, 1, 1[, 1])`: a rotation or rigid transform seen in the mirror world."""
+    m = jnp.asarray(_MIRROR + (1.0,) * (A.shape[-1] - 3), A.dtype)
+    return A * m[:, None] * m[None, :]
 
 
 @broadcasting
@@ -208,10 +208,9 @@ def mirror_clip(clip: ClipInput) -> ClipInput:
     if clip.images is None:
         raise ValueError("cannot mirror precomputed features: mirror the crops (mirror_clip), then extract_features")
     size = clip.images.shape[-1]
-    m3 = jnp.asarray(_MIRROR, clip.K.dtype)
     K = clip.K[..., ::-1, :, :]
     K = K.at[..., 0, 2].set(size - 1.0 - K[..., 0, 2])
-    T_mirror = _mirror_transform(clip.T_rig_cams)[..., ::-1, :, :]
+    T_mirror = _mirror_conjugate(clip.T_rig_cams)[..., ::-1, :, :]
     lead = clip.flow.shape[:-1]
     flow_grid = clip.flow[..., :128].reshape(lead + (8, 8, 2))[..., ::-1, :] * jnp.asarray([-1.0, 1.0], clip.flow.dtype)
     flow_flags = clip.flow[..., 128:].reshape(lead + (8, 8))[..., ::-1]
@@ -219,7 +218,7 @@ def mirror_clip(clip: ClipInput) -> ClipInput:
         images=clip.images[..., ::-1, :, :, :][..., ::-1],
         features=None,
         K=K,
-        R_cam_crop=clip.R_cam_crop[..., ::-1, :, :] * m3[:, None] * m3[None, :],
+        R_cam_crop=_mirror_conjugate(clip.R_cam_crop[..., ::-1, :, :]),
         T_rig_cams=jnp.linalg.inv(T_mirror[..., :1, :, :]) @ T_mirror,
         flow=jnp.concatenate([flow_grid.reshape(lead + (128,)), flow_flags.reshape(lead + (64,))], axis=-1),
         view_present=clip.view_present[..., ::-1],
@@ -251,7 +250,7 @@ def unmirror(out: HandPrediction, T_rig_cams: Float[Array, "2 4 4"]) -> HandPred
 
 
 @eqx.filter_jit
-def _predict(model: ESTHER, clips: ClipInput, hand_model: ManoModel, is_right: Bool[Array, "batch"], threshold: float):
+def _predict(model: ESTHER, clips: ClipInput, hand_model: ManoModel, is_right: Bool[Array, "batch"], threshold: Float[Array, ""]):
     def one(clip, right):
         seen = jax.tree.map(lambda a, b: jnp.where(right, a, b), clip, mirror_clip(clip)) if clip.images is not None else clip
         out = model(seen, hand_model)
@@ -287,7 +286,7 @@ def predict(
     if clip_batch.images is None and not right.all():
         raise ValueError("left hands need crops to mirror; precomputed features must be extracted from mirrored crops")
     hand_model = load_builtin("right") if hand_model is None else hand_model
-    return _predict(model, clip_batch, hand_model, jnp.asarray(right), threshold)
+    return _predict(model, clip_batch, hand_model, jnp.asarray(right), jnp.asarray(threshold, clip_batch.flow.dtype))
 
 
 # ----------------------------------------------------------------------------- inputs
