@@ -32,19 +32,13 @@ def stereo_data(frames: int, seed: int = 0):
     rig = cameras.rig_preset("esther")
     rng = np.random.default_rng(seed)
     points = rng.uniform([-0.15, -0.1, 0.25], [0.15, 0.15, 0.6], size=(frames, 21, 3)).astype(np.float32)
-    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
-    K = np.asarray(rig.left.K, np.float64)
-
-    def project(p):
-        uv = p @ K.T
-        return uv[..., :2] / uv[..., 2:]
-
-    in_right = points @ T_right_left[:3, :3].T + T_right_left[:3, 3]
-    uv = np.stack([project(points), project(in_right)], axis=2)  # (N, 21, 2, 2)
+    uv = np.moveaxis(np.asarray(rig.project(jnp.asarray(points)), np.float64), 0, 2)  # (N, 21, 2 views, 2)
     uv = (uv + rng.normal(scale=2.0, size=uv.shape)).astype(np.float32)
     conf = rng.uniform(0.3, 1.0, size=(frames, 21, 2)).astype(np.float32)
+    # OpenCV's projection matrices (its own input format; the rig's pinhole intrinsics).
+    K = np.asarray(rig.left.K, np.float64)
     P_left = K @ np.eye(3, 4)
-    P_right = K @ T_right_left[:3]
+    P_right = K @ np.asarray(rig.T_right_left, np.float64)[:3]
     return rig, points, uv, conf, P_left, P_right
 
 

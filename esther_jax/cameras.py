@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._io import read_json
-from ._math import eps
+from ._math import apply3, eps, safe_norm
 
 _Z_MIN = 1e-6
 """Smallest depth (m) treated as in front of a camera; projection divides by max(|z|, this)."""
@@ -49,7 +49,19 @@ class AbstractCamera(eqx.Module):
 
     @abc.abstractmethod
     def unproject(self, uv: Float[Array, "*batch 2"]) -> Float[Array, "*batch 3"]:
-        """Ray through a pixel, in the camera frame, scaled to z = 1."""
+        """Ray through a pixel, in the camera frame, scaled to z = 1 (not checked: see
+        `unproject_with_validity`)."""
+
+    @abc.abstractmethod
+    def unproject_with_validity(self, uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """`unproject(uv)` and where that ray can be trusted.
+
+        `valid` is True where the ray is the pixel's preimage (`project(ray) == uv`)
+        inside the model's valid field of view, False where the model cannot be
+        inverted there: a Fisheye624 pixel beyond `max_angle` or beyond the distortion
+        polynomial's monotonic range, whose ray is mirrored or unconverged. Always True
+        for a pinhole. It is not an image-bounds check. The rays equal `unproject`'s.
+        """
 
     @abc.abstractmethod
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
@@ -99,6 +111,9 @@ class PinholeCamera(AbstractCamera):
         x = (uv[..., 0] - self.cx) / self.fx
         y = (uv[..., 1] - self.cy) / self.fy
         return jnp.stack([x, y, jnp.ones_like(x)], -1)
+
+    def unproject_with_validity(self, uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        return self.unproject(uv), jnp.ones(uv.shape[:-1], bool)
 
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
         return (point_cam[..., 2] > _Z_MIN) & _inside_image(self.project(point_cam), self.width, self.height, margin)
@@ -203,13 +218,24 @@ class Fisheye624Camera(AbstractCamera):
 
     def unproject(self, uv: Float[Array, "*batch 2"]) -> Float[Array, "*batch 3"]:
         """Fixed-iteration Newton (jit-friendly): first undo the tangential/thin-prism
-        part (2x2 Newton), then the radial polynomial in theta (scalar Newton)."""
+        part (2x2 Newton), then the radial polynomial in theta (scalar Newton).
+
+        Beyond the valid field of view (the image corners of a wide fisheye) the ray is
+        mirrored or unconverged; `unproject_with_validity` says where."""
+        return self.unproject_with_validity(uv)[0]
+
+    def unproject_with_validity(self, uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """`unproject` and its validity: both Newton solves converged (residual within
+        `sqrt(eps)`, in normalised units), the tangential/thin-prism map is locally
+        invertible there (Jacobian determinant > 0), and the angle from the optical axis
+        `0 <= theta <= max_angle` (< pi/2) lies in the radial polynomial's monotonic
+        range (`d theta_d / d theta > 0` at theta and at theta/4, theta/2, 3 theta/4)."""
         ud = jnp.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], -1)
         flat = ud.reshape(-1, 2)
-        rays = jax.vmap(self._unproject_normalised)(flat)
-        return rays.reshape(ud.shape[:-1] + (3,))
+        rays, valid = jax.vmap(self._unproject_normalised)(flat)
+        return rays.reshape(ud.shape[:-1] + (3,)), valid.reshape(ud.shape[:-1])
 
-    def _unproject_normalised(self, ud: Float[Array, "2"]) -> Float[Array, "3"]:
+    def _unproject_normalised(self, ud: Float[Array, "2"]) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
         jac = jax.jacfwd(self._tangential_prism)
 
         def newton_xy(_, xr):
@@ -225,15 +251,34 @@ class Fisheye624Camera(AbstractCamera):
         theta_d = jnp.sqrt(jnp.where(small, 1.0, theta_d2))
         k = self.radial
 
-        def newton_theta(_, t):
+        def radial(t):
             t2 = t * t
-            g = t * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * (k[3] + t2 * (k[4] + t2 * k[5])))))) - theta_d
-            dg = 1.0 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * (9 * k[3] + t2 * (11 * k[4] + t2 * 13 * k[5])))))
-            return t - g / dg
+            return t * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * (k[3] + t2 * (k[4] + t2 * k[5]))))))
+
+        def radial_slope(t):
+            t2 = t * t
+            return 1.0 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * (9 * k[3] + t2 * (11 * k[4] + t2 * 13 * k[5])))))
+
+        def newton_theta(_, t):
+            return t - (radial(t) - theta_d) / radial_slope(t)
 
         theta = jax.lax.fori_loop(0, self.newton_iterations, newton_theta, theta_d)
         scale = jnp.where(small, 1.0, jnp.tan(theta) / theta_d)
-        return jnp.concatenate([scale * xr, jnp.ones((1,), xr.dtype)])
+        ray = jnp.concatenate([scale * xr, jnp.ones((1,), xr.dtype)])
+
+        # Validity (no gradient flows through it). A pixel beyond the valid field of view
+        # either has no preimage on the monotonic branch (Newton does not converge) or
+        # converges to theta > pi/2, whose z = 1 ray is the mirror image.
+        tol = eps(xr) ** 0.5
+        J = jac(xr)
+        converged_xy = jnp.max(jnp.abs(self._tangential_prism(xr) - ud)) <= tol * (1.0 + jnp.max(jnp.abs(ud)))
+        invertible_xy = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0] > 0.0
+        theta_eff = jnp.where(small, 0.0, theta)
+        converged_theta = small | (jnp.abs(radial(theta) - theta_d) <= tol * (1.0 + theta_d))
+        in_angle = (theta_eff >= 0.0) & (theta_eff <= self.max_angle) & (theta_eff < 0.5 * math.pi)
+        monotonic = jnp.all(radial_slope(theta_eff * jnp.asarray([0.25, 0.5, 0.75, 1.0], xr.dtype)) > 0.0)
+        valid = converged_xy & invertible_xy & converged_theta & in_angle & monotonic & jnp.all(jnp.isfinite(ray))
+        return ray, jax.lax.stop_gradient(valid)
 
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
         z = point_cam[..., 2]
@@ -258,8 +303,37 @@ class Fisheye624Camera(AbstractCamera):
 # ----------------------------------------------------------------------------- rigs
 
 
+def apply_transform(T: Float[Array, "*#batch 4 4"], X: Float[Array, "*#batch 3"]) -> Float[Array, "*#batch 3"]:
+    """Apply a rigid (or any affine) 4x4 transform to points: `R X + t`.
+
+    Frames follow ARCHITECTURE.md: `X_a = apply_transform(T_a_b, X_b)` takes points from
+    frame b to frame a. Leading axes broadcast (NumPy rules, also across ranks), so one
+    `T` of shape (4, 4) applies to points of any batch shape, and a stack of transforms
+    applies to a matching stack of points. Units follow the inputs (metres here).
+
+    Args:
+        T: transform(s) `T_a_b`; only the top 3x4 block is read.
+        X: point(s) in frame b.
+
+    Returns:
+        The point(s) in frame a, of the broadcast batch shape.
+    """
+    if T.shape[-2:] != (4, 4) or X.shape[-1:] != (3,):
+        raise ValueError(f"apply_transform takes T (..., 4, 4) and X (..., 3); got {T.shape} and {X.shape}")
+    # Broadcast explicitly: strict rank promotion forbids implicit broadcasting across ranks.
+    batch = jnp.broadcast_shapes(T.shape[:-2], X.shape[:-1])
+    R_a_b = jnp.broadcast_to(T[..., :3, :3], batch + (3, 3))
+    t_a_b = jnp.broadcast_to(T[..., :3, 3], batch + (3,))
+    return apply3(R_a_b, jnp.broadcast_to(X, batch + (3,))) + t_a_b
+
+
 class StereoRig(eqx.Module):
-    """Two calibrated cameras; the rig frame is the left camera's frame."""
+    """Two calibrated cameras; the rig frame is the left camera's frame.
+
+    The point methods (`to_views`, `project`, `is_visible`, `depths`, `distances`) take
+    points in the rig frame (metres) with any leading batch shape and return one result
+    per view stacked on a new leading axis (0 left, 1 right). The two cameras may be of
+    different models: each view is projected with its own camera."""
 
     left: AbstractCamera
     right: AbstractCamera
@@ -276,6 +350,53 @@ class StereoRig(eqx.Module):
     def T_rig_cams(self) -> Float[Array, "2 4 4"]:
         """Pose of (left, right) in the rig frame."""
         return jnp.stack([jnp.eye(4, dtype=self.T_left_right.dtype), self.T_left_right])
+
+    @property
+    def T_right_left(self) -> Float[Array, "4 4"]:
+        """Pose of the left (rig) frame in the right camera's: `X_right = T_right_left @ X_left`.
+
+        The exact rigid inverse `[R^T, -R^T t]` of `T_left_right` (no general matrix inverse)."""
+        R_left_right = self.T_left_right[..., :3, :3]
+        t_left_right = self.T_left_right[..., :3, 3]
+        R_right_left = jnp.swapaxes(R_left_right, -1, -2)
+        t_right_left = -apply3(R_right_left, t_left_right)
+        top = jnp.concatenate([R_right_left, t_right_left[..., None]], axis=-1)
+        bottom = jnp.broadcast_to(jnp.eye(4, dtype=self.T_left_right.dtype)[3:], top.shape[:-2] + (1, 4))
+        return jnp.concatenate([top, bottom], axis=-2)
+
+    @property
+    def T_cams_rig(self) -> Float[Array, "2 4 4"]:
+        """Pose of the rig frame in (left, right): `X_view = T_cams_rig[v] @ X_rig`, the
+        exact rigid inverses of `T_rig_cams`."""
+        return jnp.stack([jnp.eye(4, dtype=self.T_left_right.dtype), self.T_right_left])
+
+    def to_views(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch 3"]:
+        """Rig-frame points (m) in the left and right camera frames (m), stacked on a
+        leading view axis. The left view is the rig frame itself, returned unchanged."""
+        X_right = apply_transform(self.T_right_left, X_rig)
+        return jnp.stack([X_rig, X_right])
+
+    def project(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch 2"]:
+        """Pixels (pixel-centre convention) of rig-frame points (m) in each view, each
+        projected with its own camera; no validity check (see `is_visible`)."""
+        X_left, X_right = self.to_views(X_rig)
+        return jnp.stack([self.left.project(X_left), self.right.project(X_right)])
+
+    def is_visible(self, X_rig: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "2 *batch"]:
+        """Per view: in front of the camera, inside its valid field of view and inside the
+        image (optionally widened by `margin` pixels), for rig-frame points (m)."""
+        X_left, X_right = self.to_views(X_rig)
+        return jnp.stack([self.left.is_visible(X_left, margin), self.right.is_visible(X_right, margin)])
+
+    def depths(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch"]:
+        """Depth (m) of rig-frame points along each camera's optical axis (camera z;
+        negative behind the camera)."""
+        return self.to_views(X_rig)[..., 2]
+
+    def distances(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch"]:
+        """Euclidean distance (m) of rig-frame points to each camera's optical centre
+        (zero, not NaN, gradient at the centre)."""
+        return safe_norm(self.to_views(X_rig))
 
     @property
     def cameras(self) -> AbstractCamera:

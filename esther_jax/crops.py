@@ -116,19 +116,22 @@ def rectified_crop(
     - `hc`: a ray-aligned hand crop: the crop camera looks along the ray of the box
       centre and its focal is chosen so the padded box just fills the crop.
     """
-    outline = camera.unproject(_box_outline(box))  # rays of the box outline, camera frame
+    outline, outline_ok = camera.unproject_with_validity(_box_outline(box))  # rays of the box outline, camera frame
+    # Outline pixels beyond the camera's valid field of view (fisheye corners) have
+    # mirrored rays that would blow the box up: leave them out (unless all are).
+    keep = (outline_ok | ~jnp.any(outline_ok))[:, None]
     if strategy.startswith("offbb"):
         focal = float(strategy[len("offbb"):])
         wide = PinholeCamera(focal, focal, (camera.width - 1) / 2, (camera.height - 1) / 2, camera.width, camera.height)
         projected = wide.project(outline)
-        wide_box = jnp.concatenate([projected.min(axis=0), projected.max(axis=0)])
+        wide_box = jnp.concatenate([jnp.where(keep, projected, jnp.inf).min(axis=0), jnp.where(keep, projected, -jnp.inf).max(axis=0)])
         return crop_camera(wide, wide_box, size, padding)
     if strategy == "hc":
         centre_ray = camera.unproject(0.5 * (box[:2] + box[2:]))
         R = _look_at_rotation(centre_ray)
         in_crop = outline @ R  # rays in the crop frame (R^T x)
         tangent = jnp.abs(in_crop[:, :2] / in_crop[:, 2:3])
-        half_extent = padding * jnp.max(tangent)
+        half_extent = padding * jnp.max(jnp.where(keep, tangent, 0.0))
         focal = (size / 2) / half_extent
         c = (size - 1) / 2
         return Crop(camera=PinholeCamera(focal, focal, c, c, size, size), R_cam_crop=R)

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._math import safe_norm
+from ._math import eps, safe_norm
 from .cameras import StereoRig
 
 PCK_MAX_THRESHOLD_M = 0.05
@@ -85,12 +85,58 @@ def p_mpjpe(pred: Float[Array, "joints 3"], gt: Float[Array, "joints 3"], mask: 
     return mpjpe(_wrist_relative(pred), _wrist_relative(gt), mask)
 
 
+def _safe_sqrt(x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """`sqrt(x)` for x >= 0, with a zero (not infinite) derivative at 0 (double where)."""
+    positive = x > jnp.finfo(x.dtype).tiny
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def _umeyama_svd(cov: Float[Array, "3 3"]):
+    U, S, Vt = jnp.linalg.svd(cov)
+    sign = jnp.sign(jnp.linalg.det(U @ Vt))
+    sign = jnp.where(sign == 0, 1.0, sign)
+    D = jnp.asarray([1.0, 1.0, 0.0], cov.dtype) + jnp.asarray([0.0, 0.0, 1.0], cov.dtype) * sign
+    return U, S, Vt, D
+
+
+@jax.custom_jvp
+def _umeyama_rotation(cov: Float[Array, "3 3"]) -> tuple[Float[Array, "3 3"], Float[Array, ""]]:
+    """The rotation `R = U D V^T` (det +1) maximising `tr(R^T cov)`, and that maximum
+    `sum(D S)` (Umeyama 1991, eqs. 39-40)."""
+    U, S, Vt, D = _umeyama_svd(cov)
+    return (U * D[None]) @ Vt, jnp.sum(S * D)
+
+
+@_umeyama_rotation.defjvp
+def _umeyama_rotation_jvp(primals, tangents):
+    """Derivative of the polar factor, not of the SVD: differentiating `jnp.linalg.svd`
+    divides by `s_i^2 - s_j^2`, which is NaN whenever two singular values coincide (all
+    joints masked or identical: cov = 0; two joints: rank 1), although R's derivative
+    only has `s~_i + s~_j` (signed singular values s~ = D S) in its denominators. With
+    `cov = R P` (P symmetric) and `A = D U^T dcov V`: `dR = U D Omega V^T`,
+    `Omega_ij = (A_ij - A_ji) / (s~_i + s~_j)`, and `d sum(D S) = sum(R * dcov)`.
+    Where `s~_i + s~_j` vanishes, R is not unique but the aligned points do not depend
+    on that freedom; Omega_ij = 0 there keeps values and gradients finite."""
+    (cov,), (dcov,) = primals, tangents
+    U, S, Vt, D = _umeyama_svd(cov)
+    R = (U * D[None]) @ Vt
+    A = D[:, None] * (U.T @ dcov @ Vt.T)
+    signed = D * S
+    den = signed[:, None] + signed[None, :]
+    ok = jnp.abs(den) > eps(cov) * S[0] + jnp.finfo(cov.dtype).tiny
+    omega = jnp.where(ok, (A - A.T) / jnp.where(ok, den, 1.0), 0.0)
+    return (R, jnp.sum(S * D)), ((U * D[None]) @ omega @ Vt, jnp.sum(R * dcov))
+
+
 def procrustes_align(
     pred: Float[Array, "joints 3"], gt: Float[Array, "joints 3"], mask: Bool[Array, "joints"] | None = None
 ) -> Float[Array, "joints 3"]:
     """`s R pred + t` that best fits `gt` in least squares (Umeyama 1991), det R = +1.
 
-    Only masked-in joints enter the fit; all joints are transformed.
+    Only masked-in joints enter the fit; all joints are transformed. When the masked-in
+    predicted joints have no spread (none masked in, or all at one point up to rounding)
+    the fit degenerates to scale 0: every joint maps to the gt centroid. Values and
+    gradients are finite in every case (see `_umeyama_rotation`).
     """
     _check_pair(pred, gt)
     w = jnp.ones(pred.shape[:1], pred.dtype) if mask is None else mask.astype(pred.dtype)
@@ -100,13 +146,13 @@ def procrustes_align(
     p = pred - mu_p[None]
     g = gt - mu_g[None]
     cov = jnp.einsum("n,ni,nj->ij", w, g, p) / total  # Sigma_gp
-    U, S, Vt = jnp.linalg.svd(cov)
-    sign = jnp.sign(jnp.linalg.det(U @ Vt))
-    sign = jnp.where(sign == 0, 1.0, sign)
-    D = jnp.asarray([1.0, 1.0, 0.0], pred.dtype) + jnp.asarray([0.0, 0.0, 1.0], pred.dtype) * sign
-    R = (U * D[None]) @ Vt
+    R, trace = _umeyama_rotation(cov)
     var_p = jnp.sum(w * jnp.sum(p * p, axis=-1)) / total
-    scale = jnp.sum(S * D) / jnp.maximum(var_p, jnp.finfo(pred.dtype).tiny)
+    # No spread: the centroid's rounding error (a few eps of |pred| per joint) is all
+    # that is left of p; dividing by it would amplify noise (double where: finite grads).
+    size2 = jnp.sum(w * jnp.sum(pred * pred, axis=-1)) / total
+    spread = var_p > (pred.shape[0] * eps(pred)) ** 2 * size2 + jnp.finfo(pred.dtype).tiny
+    scale = jnp.where(spread, trace / jnp.where(spread, var_p, 1.0), 0.0)
     return scale * p @ R.T + mu_g[None]
 
 
@@ -161,11 +207,8 @@ def onscreen(joints_rig: Float[Array, "joints 3"], rig: StereoRig, min_fraction:
     """Appendix L rule: at least half of the joints project inside the image (and the
     cameras' valid field of view) in at least one eye. Joints are in the rig (left) frame."""
     need = math.ceil(min_fraction * joints_rig.shape[0])
-    in_left = jnp.sum(rig.left.is_visible(joints_rig).astype(jnp.int32))
-    T_right_left = jnp.linalg.inv(rig.T_left_right)
-    in_right_frame = joints_rig @ T_right_left[:3, :3].T + T_right_left[None, :3, 3]
-    in_right = jnp.sum(rig.right.is_visible(in_right_frame).astype(jnp.int32))
-    return (in_left >= need) | (in_right >= need)
+    per_view = jnp.sum(rig.is_visible(joints_rig).astype(jnp.int32), axis=-1)  # (2,) joints visible per view
+    return jnp.any(per_view >= need)
 
 
 class GateScores(eqx.Module):
@@ -223,11 +266,17 @@ def depth_scatter(z_pred: Float[Array, "n"], z_gt: Float[Array, "n"], mask: Bool
     mean_p, mean_g = jnp.sum(zp) / safe_n, jnp.sum(zg) / safe_n
     dp, dg = (zp - mean_p) * w, (zg - mean_g) * w
     var_g, var_p, cov = jnp.sum(dg * dg) / safe_n, jnp.sum(dp * dp) / safe_n, jnp.sum(dp * dg) / safe_n
-    slope = cov / jnp.maximum(var_g, jnp.finfo(z_pred.dtype).tiny)
+    # Without spread in z_gt (or z_pred) the slope (correlation) is 0 with a zero
+    # gradient, not d(cov) / tiny (double where).
+    tiny = jnp.finfo(z_pred.dtype).tiny
+    has_var_g = var_g > tiny
+    slope = jnp.where(has_var_g, cov / jnp.where(has_var_g, var_g, 1.0), 0.0)
     intercept = mean_p - slope * mean_g
-    correlation = cov / jnp.maximum(jnp.sqrt(var_g * var_p), jnp.finfo(z_pred.dtype).tiny)
+    sd_gp = _safe_sqrt(var_g * var_p)
+    has_sd = sd_gp > tiny
+    correlation = jnp.where(has_sd, cov / jnp.where(has_sd, sd_gp, 1.0), 0.0)
     fit = slope * zg + intercept
-    rms = lambda x: jnp.sqrt(jnp.sum(w * x * x) / safe_n) * 1000.0  # noqa: E731
+    rms = lambda x: _safe_sqrt(jnp.sum(w * x * x) / safe_n) * 1000.0  # noqa: E731  (finite gradient at 0 error)
     return DepthScatter(
         slope=slope, intercept=intercept, correlation=correlation,
         systematic_mm=rms(fit - zg), random_mm=rms(zp - fit), rmse_mm=rms(zp - zg), count=n,

@@ -163,11 +163,28 @@ def rotation_6d_to_matrix(rotation_6d: Float[Array, "*batch 6"]) -> Float[Array,
 
     Zhou et al.: `b1 = a1/|a1|`, `b2 = normalise(a2 - (b1.a2) b1)`, `b3 = b1 x b2`.
     The inputs need not be orthonormal (that is the point: a network emits them).
+
+    Degenerate inputs still give a proper rotation with finite values and gradients
+    (double `jnp.where`): when `|a1| < eps`, `b1 = e_x`; when `a2` has no usable part
+    orthogonal to `b1` (`|u2|^2 <= eps |a2|^2 + eps^2`: zero, or parallel to `a1` up to
+    rounding), `b2` is Gram-Schmidt of the basis axis least aligned with `b1`. Both
+    fallbacks have zero gradient with respect to the degenerate column. Other inputs
+    are unchanged.
     """
     a1, a2 = rotation_6d[..., 0:3], rotation_6d[..., 3:6]
-    b1 = a1 / jnp.linalg.norm(a1, axis=-1, keepdims=True)
+    dtype_eps = eps(rotation_6d)
+    one_hot = lambda k: jnp.stack([k == 0, k == 1, k == 2], -1).astype(rotation_6d.dtype)  # noqa: E731
+    a1_sq = jnp.sum(a1 * a1, axis=-1, keepdims=True)
+    a1_tiny = a1_sq < dtype_eps**2
+    a1_safe = jnp.where(a1_tiny, one_hot(jnp.zeros(a1.shape[:-1], jnp.int32)), a1)
+    b1 = a1_safe / jnp.sqrt(jnp.where(a1_tiny, 1.0, a1_sq))
     u2 = a2 - jnp.sum(b1 * a2, axis=-1, keepdims=True) * b1
-    b2 = u2 / jnp.linalg.norm(u2, axis=-1, keepdims=True)
+    u2_sq = jnp.sum(u2 * u2, axis=-1, keepdims=True)
+    u2_tiny = u2_sq <= dtype_eps * jnp.sum(a2 * a2, axis=-1, keepdims=True) + dtype_eps**2
+    # The axis with the smallest |b1_k| keeps |e_k - b1_k b1|^2 = 1 - b1_k^2 >= 2/3.
+    e_k = one_hot(jnp.argmin(jnp.abs(b1), axis=-1))
+    u2_safe = jnp.where(u2_tiny, e_k - jnp.sum(b1 * e_k, axis=-1, keepdims=True) * b1, u2)
+    b2 = u2_safe / jnp.sqrt(jnp.sum(u2_safe * u2_safe, axis=-1, keepdims=True))
     b3 = jnp.cross(b1, b2)
     return jnp.stack([b1, b2, b3], axis=-1)
 

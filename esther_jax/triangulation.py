@@ -10,7 +10,9 @@ equations `sum w^2 a a^T X = sum w^2 a b` depend smoothly on w and stay differen
 when a weight goes to zero; they are solved in closed form (adjugate, a few dozen
 flops: no batched SVD). Rank-deficient systems (one view or none, parallel rays)
 are swapped for a harmless one, so every output and gradient stays finite; degenerate
-cases are reported through `valid`, never as NaN.
+cases are reported through `valid`, never as NaN. A pixel its camera cannot invert
+(`unproject_with_validity`: a fisheye corner beyond the valid field of view, whose ray
+would be mirrored) counts as unobserved (weight 0).
 """
 
 import math
@@ -100,12 +102,18 @@ def triangulate(
     # is one contiguous vector over points: no tiny dot_generals, no reductions over
     # axes of size 2 or 3 (about 5x faster on CPU than the einsum formulation).
     finite = jnp.all(jnp.isfinite(uv), axis=-1) & jnp.isfinite(weights)
-    w = jnp.where(finite, jnp.clip(weights, 0.0, None), 0.0)
     uv_safe = jnp.where(finite[:, None], uv, 0.0)
     R = [[[T_rig_cams[v, i, j] for j in range(3)] for i in range(3)] for v in range(num)]
     t = [[T_rig_cams[v, i, 3] for i in range(3)] for v in range(num)]
     cams = [jax.tree.map(lambda x, v=v: x[v], cameras) for v in range(num)]
-    rays = [cams[v].unproject(uv_safe[v]) for v in range(num)]  # z = 1, camera frame
+    # A pixel its camera cannot invert (a fisheye corner beyond the valid field of view,
+    # whose ray is mirrored) does not observe the point: weight 0, and a harmless ray.
+    unprojected = [cams[v].unproject_with_validity(uv_safe[v]) for v in range(num)]
+    ray_ok = jnp.stack([ok for _, ok in unprojected])
+    w = jnp.where(finite & ray_ok, jnp.clip(weights, 0.0, None), 0.0)
+    axis_ray = jnp.asarray([0.0, 0.0, 1.0], uv.dtype)
+    rays = [jnp.where(ray_ok[v], unprojected[v][0], axis_ray) for v in range(num)]  # z = 1, camera frame
+    del unprojected
     M = [[0.0] * 3 for _ in range(3)]
     rhs = [0.0] * 3
     directions = []
@@ -159,7 +167,11 @@ def triangulate(
     valid = (num_views >= 2) & solvable & in_front & parallax_ok & jnp.all(jnp.isfinite(point))
     residual_px = jnp.stack(residuals)
     distances2 = jnp.stack(distances2)
-    spread = jnp.sqrt(jnp.sum(w * distances2) / jnp.maximum(jnp.sum(w), eps(w)))
+    # sqrt of the weighted mean square: exactly 0 with one used view (its own ray) or
+    # none, where sqrt has an infinite derivative; double where keeps gradients finite.
+    spread2 = jnp.sum(w * distances2) / jnp.maximum(jnp.sum(w), eps(w))
+    some_spread = spread2 > jnp.finfo(spread2.dtype).tiny
+    spread = jnp.where(some_spread, jnp.sqrt(jnp.where(some_spread, spread2, 1.0)), 0.0)
     return Triangulation(point=point, valid=valid, residual_px=residual_px, spread=spread, num_views=num_views)
 
 

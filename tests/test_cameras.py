@@ -267,3 +267,176 @@ def test_fisheye624_matches_projectaria_tools_on_random_points(preset, x64):
         np.testing.assert_allclose(rays, their_rays / their_rays[:, 2:3], atol=1e-9)
         visible = np.asarray(cam.is_visible(jnp.asarray(points)))
         assert np.all(visible == np.array([ref.project(p) is not None for p in points]))
+
+
+# ----------------------------------------------------------------------------- rig geometry
+
+GEOMETRY_RIGS = ("esther", "hot3d_aria", "hot3d_quest3")
+
+
+def _rig_points(shape: tuple[int, ...], seed: int = 0) -> jax.Array:
+    """Rig-frame points around both rigs' fields of view: some visible in one view, some
+    in both, some in neither, a few behind the cameras."""
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(rng.uniform([-0.6, -0.5, -0.1], [0.6, 0.5, 0.8], size=shape + (3,)), jnp.result_type(float))
+
+
+def _explicit_views(rig: StereoRig, X: jax.Array) -> np.ndarray:
+    """The formula the rig API replaces: X_right = inv(T_left_right) X_rig, homogeneous, float64."""
+    X = np.asarray(X, np.float64)
+    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
+    right = np.einsum("ij,...j->...i", T_right_left, np.concatenate([X, np.ones(X.shape[:-1] + (1,))], -1))[..., :3]
+    return np.stack([X, right])
+
+
+def _rig_geometry(rig: StereoRig, X: jax.Array):
+    return rig.to_views(X), rig.project(X), rig.is_visible(X), rig.depths(X), rig.distances(X)
+
+
+_rig_geometry_jit = jax.jit(_rig_geometry)
+_rig_geometry_vmap = jax.jit(jax.vmap(_rig_geometry, in_axes=(None, 0), out_axes=1))
+
+
+@pytest.mark.parametrize("shape", [(), (3, 4)])
+@pytest.mark.parametrize("name", GEOMETRY_RIGS)
+def test_rig_geometry_equals_the_per_view_formulas(name, shape):
+    rig = cameras.rig_preset(name)
+    X = _rig_points(shape, seed=len(shape))
+    views, uv, visible, depths, distances = _rig_geometry(rig, X)
+    assert views.shape == (2,) + shape + (3,) and uv.shape == (2,) + shape + (2,)
+    assert visible.shape == depths.shape == distances.shape == (2,) + shape and visible.dtype == jnp.bool_
+    assert views.dtype == uv.dtype == depths.dtype == distances.dtype == X.dtype
+    explicit = _explicit_views(rig, X)
+    np.testing.assert_array_equal(np.asarray(views[0]), np.asarray(X))  # the rig frame is the left camera's
+    np.testing.assert_allclose(np.asarray(views), explicit, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(depths), explicit[..., 2], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(distances), np.linalg.norm(explicit, axis=-1), atol=1e-6)
+    for v, camera in enumerate((rig.left, rig.right)):  # each view with its own camera
+        np.testing.assert_array_equal(np.asarray(uv[v]), np.asarray(camera.project(views[v])))
+        np.testing.assert_array_equal(np.asarray(visible[v]), np.asarray(camera.is_visible(views[v])))
+        np.testing.assert_array_equal(np.asarray(rig.is_visible(X, margin=50.0)[v]), np.asarray(camera.is_visible(views[v], 50.0)))
+        in_front = explicit[v][..., 2] > 0.1  # pixels of the explicit points, away from the z = 0 singularity
+        ref = np.asarray(camera.project(jnp.asarray(explicit[v], X.dtype)))
+        np.testing.assert_allclose(np.asarray(uv[v])[in_front], ref[in_front], atol=2e-3)
+    if shape:  # the sample exercises both answers of the visibility test in each view
+        assert np.asarray(visible).any(axis=-1).any(axis=-1).all() and not np.asarray(visible).all(axis=-1).all(axis=-1).any()
+    for got, want in zip(_rig_geometry_jit(rig, X), (views, uv, visible, depths, distances)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-4)
+    if shape:
+        for got, want in zip(_rig_geometry_vmap(rig, X), (views, uv, visible, depths, distances)):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-4)
+
+
+@pytest.mark.parametrize("name", GEOMETRY_RIGS)
+def test_rig_inverse_is_exact_and_rigid(name):
+    rig = cameras.rig_preset(name)
+    T = np.asarray(rig.T_right_left)
+    np.testing.assert_allclose(np.asarray(rig.T_right_left @ rig.T_left_right), np.eye(4), atol=1e-6)
+    np.testing.assert_allclose(T, np.linalg.inv(np.asarray(rig.T_left_right, np.float64)), atol=1e-6)
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    np.testing.assert_array_equal(T[:3, :3], np.asarray(rig.T_left_right)[:3, :3].T)
+    np.testing.assert_allclose(np.asarray(rig.T_cams_rig @ rig.T_rig_cams), np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6)
+
+
+def test_rig_of_two_camera_models_projects_each_view_with_its_own_camera():
+    aria = cameras.rig_preset("hot3d_aria")
+    pinhole = PinholeCamera(300.0, 300.0, 319.5, 239.5, 640, 480)
+    rig = StereoRig(pinhole, aria.right, aria.T_left_right, "mixed")
+    X = _rig_points((5,))
+    views = rig.to_views(X)
+    np.testing.assert_array_equal(np.asarray(rig.project(X)[0]), np.asarray(pinhole.project(X)))
+    np.testing.assert_array_equal(np.asarray(rig.project(X)[1]), np.asarray(aria.right.project(views[1])))
+    np.testing.assert_array_equal(np.asarray(rig.is_visible(X)[1]), np.asarray(aria.is_visible(X)[1]))
+
+
+def test_rig_geometry_in_float64_and_gradients(x64):
+    rig = cameras.rig_preset("hot3d_aria")
+    X = _rig_points((4,))
+    assert X.dtype == jnp.float64 and rig.to_views(X).dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(rig.to_views(X)), _explicit_views(rig, X), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(rig.T_right_left @ rig.T_left_right), np.eye(4), atol=1e-12)
+    # distances are differentiable everywhere, also at an optical centre
+    centre = jnp.zeros(3)
+    grad = jax.grad(lambda x: jnp.sum(rig.distances(x)))(centre)
+    assert np.all(np.isfinite(np.asarray(grad)))
+    p = X[0]
+    jac = jax.jacfwd(rig.depths)(p)
+    np.testing.assert_allclose(np.asarray(jac), np.stack([[0.0, 0.0, 1.0], np.asarray(rig.T_right_left)[2, :3]]), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "t_shape, x_shape",
+    [((), ()), ((), (3, 4)), ((3, 4), (3, 4)), ((3, 1), (1, 4)), ((3, 4), ())],
+)
+def test_apply_transform_equals_homogeneous_multiplication(t_shape, x_shape):
+    rng = np.random.default_rng(3)
+    T = np.tile(np.eye(4), t_shape + (1, 1))
+    for index in np.ndindex(*t_shape):
+        T[index][:3, :3] = cv2.Rodrigues(rng.normal(size=3))[0]
+        T[index][:3, 3] = rng.normal(size=3)
+    X = rng.normal(size=x_shape + (3,))
+    dtype = jnp.result_type(float)
+    got = cameras.apply_transform(jnp.asarray(T, dtype), jnp.asarray(X, dtype))
+    want = np.einsum("...ij,...j->...i", T, np.concatenate([X, np.ones(x_shape + (1,))], -1))[..., :3]
+    assert got.shape == want.shape and got.dtype == dtype
+    np.testing.assert_allclose(np.asarray(got), want, atol=1e-5)
+    unchecked = getattr(cameras.apply_transform, "__wrapped__", cameras.apply_transform)  # past the tests' jaxtyping check
+    with pytest.raises(ValueError, match="apply_transform takes"):
+        unchecked(jnp.asarray(T, dtype)[..., :3, :], jnp.asarray(X, dtype))
+
+
+# ----------------------------------------------------------------------------- unprojection validity
+
+
+@jax.jit
+def _unproject_checked(cam, uv):
+    rays, valid = cam.unproject_with_validity(uv)
+    return rays, valid, cam.unproject(uv), cam.project(rays), cam.is_visible(0.5 * rays)
+
+
+@pytest.mark.parametrize("view", ["left", "right"])
+def test_fisheye_unproject_validity_mask(view, x64):
+    cam = getattr(cameras.rig_preset("hot3d_aria"), view)
+    W, H = cam.width, cam.height
+    v, u = np.meshgrid(np.linspace(0.0, H - 1.0, 25), np.linspace(0.0, W - 1.0, 33), indexing="ij")
+    corners = np.asarray([[-0.5, -0.5], [W - 0.5, -0.5], [-0.5, H - 0.5], [W - 0.5, H - 0.5]])
+    centre = np.asarray([[float(cam.cx), float(cam.cy)]])
+    uv = np.concatenate([centre, corners, np.stack([u, v], -1).reshape(-1, 2)])
+    rays, valid, plain, back, visible = (np.asarray(x) for x in _unproject_checked(cam, jnp.asarray(uv)))
+    assert valid.shape == (uv.shape[0],) and valid.dtype == bool
+    assert valid[0] and not np.any(valid[1:5])  # True at the centre, False in every corner
+    np.testing.assert_array_equal(rays, plain)  # the rays are `unproject`'s
+    error = np.max(np.abs(back - uv), axis=-1)
+    # what the mask catches: in the corners the plain ray is mirrored or does not round-trip
+    mirrored = np.sign(rays[:, 0]) != np.sign(uv[:, 0] - float(cam.cx))
+    assert np.all(mirrored[1:5] | (error[1:5] > 1.0))
+    # where valid: project(unproject(uv)) round-trips, within max_angle, visible
+    assert 0.5 < valid.mean() < 1.0
+    assert np.max(error[valid]) < 1e-6
+    assert np.max(np.arctan(np.linalg.norm(rays[valid, :2], axis=-1))) <= float(cam.max_angle)
+    assert np.all(visible[valid])
+    # leading batch axes; eager equals jit
+    _, grid_valid = cam.unproject_with_validity(jnp.asarray(uv[5:]).reshape(25, 33, 2))
+    assert grid_valid.shape == (25, 33)
+    np.testing.assert_array_equal(np.asarray(grid_valid).reshape(-1), valid[5:])
+
+
+def test_fisheye_unproject_validity_float32_and_gradients():
+    cam = cameras.rig_preset("hot3d_quest3").left
+    points = jnp.asarray(np.random.default_rng(4).uniform([-0.3, -0.25, 0.3], [0.3, 0.25, 0.6], size=(100, 3)), jnp.float32)
+    uv = cam.project(points)
+    corner = jnp.asarray([[cam.width - 0.5, cam.height - 0.5]], jnp.float32)
+    rays, valid, _, back, _ = _unproject_checked(cam, jnp.concatenate([uv, corner]))
+    assert np.all(np.asarray(valid[:-1])) and not bool(valid[-1])  # float32 Newton residuals pass the sqrt(eps) tolerance
+    assert np.max(np.abs(np.asarray(back[:-1] - uv))) < 1e-2
+    jac = jax.jit(jax.vmap(jax.jacrev(cam.unproject)))(jnp.concatenate([uv[:1], corner]))
+    assert np.all(np.isfinite(np.asarray(jac)))
+
+
+def test_pinhole_unproject_is_valid_everywhere():
+    cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
+    for shape in ((), (3, 1, 2)):
+        uv = jnp.full(shape + (2,), 7000.0)
+        rays, valid = cam.unproject_with_validity(uv)
+        assert valid.shape == shape and bool(jnp.all(valid))
+        np.testing.assert_array_equal(np.asarray(rays), np.asarray(cam.unproject(uv)))

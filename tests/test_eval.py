@@ -6,8 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cli, eval as ev, metrics
-from esther_jax.data import clip_io
+from esther_jax import cli, clips, eval as ev, metrics
 from esther_jax.eval import hot3d, protocols, reports
 from esther_jax.mano import KEYPOINT_NAMES
 
@@ -98,8 +97,8 @@ def _write_clip(root, name, rng, T=24, fps=30.0, noise=0.0, drift=0.0):
         global_orient=np.zeros((T, 3)), hand_pose=np.zeros((T, 15, 3)), betas=np.zeros(10), transl=joints[:, 0],
         joints=joints, onscreen=onscreen,
     )  # fmt: skip
-    clip_io.save_npz(clip_io.hand_file(clip, "right", "gt"), **arrays)
-    clip_io.write_meta(clip, fps=fps, num_frames=T, source="test")
+    clips.save_npz(clips.hand_file(clip, "right", "gt"), **arrays)
+    clips.write_meta(clip, fps=fps, num_frames=T, source="test")
     pred = dict(arrays)
     pred["joints"] = joints + rng.normal(scale=noise, size=joints.shape) + drift
     pred["valid"] = np.ones(T, bool)
@@ -112,7 +111,7 @@ def test_evaluate_folders_end_to_end(tmp_path):
     gt_root, pred_root = tmp_path / "gt", tmp_path / "pred"
     for i in range(6):
         pred = _write_clip(gt_root, f"clip{i:02d}", rng, noise=0.002, drift=0.01)
-        clip_io.save_npz(clip_io.hand_file(pred_root / f"clip{i:02d}", "right", "labels"), **pred)
+        clips.save_npz(clips.hand_file(pred_root / f"clip{i:02d}", "right", "labels"), **pred)
     _write_clip(gt_root, "unlabelled", rng)
     assert cli.main(["evaluate", "--pred", str(pred_root), "--gt", str(gt_root), "--out", str(tmp_path / "out"), "--method", "test"]) == 0
     result = json.loads((tmp_path / "out" / "metrics.json").read_text())
@@ -129,7 +128,7 @@ def test_evaluate_folders_end_to_end(tmp_path):
 def test_evaluate_reports_bad_inputs(tmp_path, capsys):
     rng = np.random.default_rng(2)
     pred = _write_clip(tmp_path / "gt", "clip", rng)
-    clip_io.save_npz(clip_io.hand_file(tmp_path / "pred" / "clip", "right", "labels"), **{k: v for k, v in pred.items() if k != "joints"})
+    clips.save_npz(clips.hand_file(tmp_path / "pred" / "clip", "right", "labels"), **{k: v for k, v in pred.items() if k != "joints"})
     assert cli.main(["evaluate", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"), "--out", str(tmp_path / "o")]) == 2
     assert "joints" in capsys.readouterr().err
     assert cli.main(["evaluate", "--pred", str(tmp_path / "nothing"), "--gt", str(tmp_path / "gt"), "--out", str(tmp_path / "o")]) == 2
@@ -138,21 +137,21 @@ def test_evaluate_reports_bad_inputs(tmp_path, capsys):
 def test_clip_files_say_what_is_wrong(tmp_path):
     rng = np.random.default_rng(3)
     _write_clip(tmp_path, "c", rng)
-    path = clip_io.hand_file(tmp_path / "c", "right", "gt")
+    path = clips.hand_file(tmp_path / "c", "right", "gt")
     good = path.read_bytes()
     path.write_bytes(good[: len(good) // 2])
-    with pytest.raises(clip_io.ClipFormatError, match="truncated"):
-        clip_io.load_npz(path, "gt")
-    with pytest.raises(clip_io.ClipFormatError, match="does not exist"):
-        clip_io.load_npz(tmp_path / "absent.npz", "gt")
-    clip_io.save_npz(path, joints=np.zeros((4, 20, 3)), **{k: np.zeros(s) for k, s in
+    with pytest.raises(clips.ClipFormatError, match="truncated"):
+        clips.load_npz(path, "gt")
+    with pytest.raises(clips.ClipFormatError, match="does not exist"):
+        clips.load_npz(tmp_path / "absent.npz", "gt")
+    clips.save_npz(path, joints=np.zeros((4, 20, 3)), **{k: np.zeros(s) for k, s in
                      dict(global_orient=(4, 3), hand_pose=(4, 15, 3), betas=(10,), transl=(4, 3), onscreen=(4,)).items()})  # fmt: skip
-    with pytest.raises(clip_io.ClipFormatError, match="joints has shape"):
-        clip_io.load_npz(path, "gt")
-    clip_io.save_npz(path, joints=np.zeros((5, 21, 3)), **{k: np.zeros(s) for k, s in
+    with pytest.raises(clips.ClipFormatError, match="joints has shape"):
+        clips.load_npz(path, "gt")
+    clips.save_npz(path, joints=np.zeros((5, 21, 3)), **{k: np.zeros(s) for k, s in
                      dict(global_orient=(4, 3), hand_pose=(4, 15, 3), betas=(10,), transl=(4, 3), onscreen=(4,)).items()})  # fmt: skip
-    with pytest.raises(clip_io.ClipFormatError, match="T is 4 elsewhere"):
-        clip_io.load_npz(path, "gt")
+    with pytest.raises(clips.ClipFormatError, match="T is 4 elsewhere"):
+        clips.load_npz(path, "gt")
 
 
 def test_reports_table_and_figure(tmp_path):

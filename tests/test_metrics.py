@@ -7,6 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from esther_jax import cameras, metrics
 
+from .helpers import finite_difference_jacobian
+
 
 def hand(rng, n=21):
     return rng.normal(scale=0.04, size=(n, 3)) + np.array([0.0, 0.0, 0.4])
@@ -179,3 +181,92 @@ def test_metrics_vmap_and_jit_over_sequences():
         np.testing.assert_allclose(np.asarray(batched), loop, rtol=1e-4, atol=1e-7)
     with pytest.raises((ValueError, TypeError), match="one frame|pred"):  # jaxtyping checks first in tests
         metrics.mpjpe(pred, gt)
+
+
+def _all_finite(tree):
+    return all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(tree))
+
+
+def test_pa_mpjpe_gradients_are_finite_when_the_fit_degenerates():
+    rng = np.random.default_rng(9)
+    gt = jnp.asarray(hand(rng), jnp.float32)
+    pred = gt + jnp.asarray(rng.normal(scale=0.004, size=gt.shape), jnp.float32)
+    same = jnp.broadcast_to(jnp.asarray([0.01, -0.02, 0.4], jnp.float32), gt.shape)
+    first = lambda k: jnp.arange(21) < k  # noqa: E731
+    cases = {
+        "all_masked": (pred, gt, jnp.zeros(21, bool)),
+        "pred_identical": (same, gt, None),
+        "gt_identical": (pred, same, None),
+        "both_identical": (same, same, None),
+        "one_joint": (pred, gt, first(1)),
+        "two_joints": (pred, gt, first(2)),  # rank-1 covariance: two zero singular values
+        "perfect_fit": (gt, gt, None),
+    }
+    for name, (p, g, m) in cases.items():
+        value = metrics.pa_mpjpe(p, g, m)
+        assert np.isfinite(float(value)), name
+        grads = jax.grad(metrics.pa_mpjpe, argnums=(0, 1))(p, g, m)
+        assert _all_finite(grads), name
+        assert _all_finite(jax.jacfwd(metrics.pa_mpjpe, argnums=(0, 1))(p, g, m)), name
+        assert _all_finite(jax.jacrev(metrics.procrustes_align)(p, g, m)), name
+    # no spread in the prediction: the best similarity is scale 0 onto the gt centroid
+    centroid = np.asarray(gt).mean(0)
+    expected = np.mean(np.linalg.norm(np.asarray(gt) - centroid, axis=-1))
+    assert float(metrics.pa_mpjpe(same, gt)) == pytest.approx(expected, rel=1e-5)
+    assert float(metrics.pa_mpjpe(pred, gt, jnp.zeros(21, bool))) == 0.0
+
+
+def _svd_pa_mpjpe(pred, gt, mask):
+    """The plain Umeyama formulation, differentiated through `jnp.linalg.svd` (the
+    implementation before the degenerate cases were made safe)."""
+    w = mask.astype(pred.dtype)
+    total = jnp.sum(w)
+    mu_p, mu_g = jnp.sum(w[:, None] * pred, 0) / total, jnp.sum(w[:, None] * gt, 0) / total
+    p, g = pred - mu_p[None], gt - mu_g[None]
+    U, S, Vt = jnp.linalg.svd(jnp.einsum("n,ni,nj->ij", w, g, p) / total)
+    D = jnp.stack([jnp.ones_like(S[0]), jnp.ones_like(S[0]), jnp.sign(jnp.linalg.det(U @ Vt))])
+    R = (U * D[None]) @ Vt
+    scale = jnp.sum(S * D) / (jnp.sum(w * jnp.sum(p * p, -1)) / total)
+    errors = jnp.sqrt(jnp.sum((scale * p @ R.T + mu_g[None] - gt) ** 2, -1))
+    return jnp.sum(w * errors) / total
+
+
+def test_pa_mpjpe_values_and_gradients_unchanged_in_the_normal_case(x64):
+    rng = np.random.default_rng(10)
+    gt = hand(rng)
+    for pred, mask in (
+        (similarity(gt + rng.normal(scale=0.005, size=gt.shape), rng), np.ones(21, bool)),
+        (similarity(gt * np.array([-1.0, 1.0, 1.0]), rng), np.ones(21, bool)),  # needs the det = +1 correction
+        (similarity(gt + rng.normal(scale=0.005, size=gt.shape), rng), rng.uniform(size=21) < 0.7),
+    ):
+        m = jnp.asarray(mask)
+        x = jnp.asarray(np.concatenate([pred.reshape(-1), gt.reshape(-1)]))
+        ours = lambda v: metrics.pa_mpjpe(v[:63].reshape(21, 3), v[63:].reshape(21, 3), m)  # noqa: E731
+        plain = lambda v: _svd_pa_mpjpe(v[:63].reshape(21, 3), v[63:].reshape(21, 3), m)  # noqa: E731
+        assert float(ours(x)) == pytest.approx(float(plain(x)), rel=1e-12)
+        grad = np.asarray(jax.grad(ours)(x))
+        np.testing.assert_allclose(grad, np.asarray(jax.grad(plain)(x)), rtol=1e-9, atol=1e-13)
+        np.testing.assert_allclose(grad, np.asarray(jax.jacfwd(ours)(x)), rtol=1e-9, atol=1e-13)
+        np.testing.assert_allclose(grad, finite_difference_jacobian(lambda v: ours(v)[None], np.asarray(x), h=1e-7)[0], rtol=1e-5, atol=1e-7)
+
+
+def test_depth_scatter_gradients_are_finite_at_zero_error():
+    rng = np.random.default_rng(11)
+    z_gt = jnp.asarray(rng.uniform(0.2, 0.7, size=64), jnp.float32)
+    constant = jnp.full((64,), 0.4, jnp.float32)
+    fields = ("slope", "intercept", "correlation", "systematic_mm", "random_mm", "rmse_mm")
+    for name, (zp, zg) in {"exact": (z_gt, z_gt), "constant_pred": (constant, z_gt), "constant_gt": (z_gt, constant),
+                           "all_constant": (constant, constant)}.items():  # fmt: skip
+        d = metrics.depth_scatter(zp, zg)
+        assert _all_finite(d), name
+        for field in fields:
+            g = jax.grad(lambda a, b, field=field: getattr(metrics.depth_scatter(a, b), field), argnums=(0, 1))(zp, zg)
+            assert _all_finite(g), (name, field)
+    exact = metrics.depth_scatter(z_gt, z_gt)
+    assert float(exact.rmse_mm) == 0.0 and float(exact.slope) == pytest.approx(1.0, abs=1e-5)
+    # normal case: values as the plain formulas
+    z_pred = 0.9 * z_gt + 0.02 + jnp.asarray(rng.normal(scale=0.01, size=64), jnp.float32)
+    d = metrics.depth_scatter(z_pred, z_gt)
+    zp, zg = np.asarray(z_pred, np.float64), np.asarray(z_gt, np.float64)
+    assert float(d.rmse_mm) == pytest.approx(np.sqrt(np.mean((zp - zg) ** 2)) * 1000, rel=1e-4)
+    assert float(d.correlation) == pytest.approx(np.corrcoef(zp, zg)[0, 1], rel=1e-4)

@@ -130,3 +130,51 @@ def test_jit_vmap_agree_with_plain_calls():
     np.testing.assert_allclose(np.asarray(jax.vmap(rot.axis_angle_to_matrix)(w)), np.asarray(batched), atol=1e-6)
     deep = jnp.reshape(jnp.tile(w[:6], (1, 1)), (3, 1, 2, 3))
     assert rot.matrix_to_axis_angle(rot.axis_angle_to_matrix(deep)).shape == (3, 1, 2, 3)
+
+
+DEGENERATE_6D = {
+    "zero": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    "first_zero": [0.0, 0.0, 0.0, 0.3, -1.0, 0.2],
+    "first_tiny": [1e-30, 0.0, 0.0, 0.0, 1.0, 0.0],
+    "second_zero": [0.3, -0.2, 0.9, 0.0, 0.0, 0.0],
+    "parallel": [0.3, -0.2, 0.9, 0.6, -0.4, 1.8],
+    "antiparallel": [0.0, 1.0, 0.0, 0.0, -5.0, 0.0],
+    "nearly_parallel": [1.0, 0.0, 0.0, 1.0, 1e-9, 0.0],
+}
+
+
+@pytest.mark.parametrize("dtype_x64", [False, True])
+@pytest.mark.parametrize("name", sorted(DEGENERATE_6D))
+def test_rotation_6d_degenerate_inputs_give_rotations_with_finite_gradients(name, dtype_x64, request):
+    if dtype_x64:
+        request.getfixturevalue("x64")
+    x = jnp.asarray(DEGENERATE_6D[name], jnp.result_type(float))
+    r = np.asarray(rot.rotation_6d_to_matrix(x))
+    assert np.all(np.isfinite(r)), name
+    np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-6)
+    assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-6)
+    a1 = np.asarray(DEGENERATE_6D[name][:3])
+    if np.linalg.norm(a1) > 1e-3:  # a usable first column is kept
+        np.testing.assert_allclose(r[:, 0], a1 / np.linalg.norm(a1), atol=1e-6)
+    for jac in (jax.jacfwd, jax.jacrev):
+        assert np.all(np.isfinite(np.asarray(jac(rot.rotation_6d_to_matrix)(x)))), (name, jac.__name__)
+    loss = lambda v: jnp.sum(rot.rotation_6d_to_matrix(v) * jnp.arange(9.0, dtype=v.dtype).reshape(3, 3))  # noqa: E731
+    assert np.all(np.isfinite(np.asarray(jax.grad(loss)(x)))), name
+    # batched (a network head's output): the degenerate rows do not affect the others
+    batch = jnp.stack([x, jnp.asarray([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], x.dtype)])
+    assert np.all(np.isfinite(np.asarray(jax.grad(lambda b: jnp.sum(jax.vmap(loss)(b)))(batch))))
+
+
+def test_rotation_6d_unchanged_on_normal_inputs(x64):
+    rng = np.random.default_rng(4)
+    six = rng.normal(size=(50, 6))
+    a1, a2 = six[:, :3], six[:, 3:]
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = u2 / np.linalg.norm(u2, axis=-1, keepdims=True)
+    reference = np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
+    np.testing.assert_allclose(np.asarray(rot.rotation_6d_to_matrix(jnp.asarray(six))), reference, atol=1e-14)
+    f = lambda v: rot.rotation_6d_to_matrix(v).reshape(-1)  # noqa: E731
+    jf = np.asarray(jax.jacfwd(f)(jnp.asarray(six[0])))
+    np.testing.assert_allclose(jf, np.asarray(jax.jacrev(f)(jnp.asarray(six[0]))), atol=1e-12)
+    np.testing.assert_allclose(jf, finite_difference_jacobian(f, six[0]), rtol=1e-6, atol=1e-8)

@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cameras, cli, metrics
+from esther_jax import cameras, cli, clips, metrics
 from esther_jax.crops import crop_camera
-from esther_jax.data import clip_io, detector, flow, motion, render, synth
+from esther_jax.data import detector, flow, motion, render, synth
 from esther_jax.rotations import axis_angle_to_matrix
 
 
@@ -148,13 +148,13 @@ def test_written_clips_load_back_identically(tmp_path):
         for k, v in clip.crops[side].items():
             np.testing.assert_array_equal(back.crops[side][k], v)
     assert back.crops[side]["images"].shape[2:4] == (64, 64) and back.crops[side]["flow"].shape == (8, 192)
-    kp_path = clip_io.hand_file(folder, side, "keypoints")
+    kp_path = clips.hand_file(folder, side, "keypoints")
     kp_path.write_bytes(kp_path.read_bytes()[:100])
-    with pytest.raises(clip_io.ClipFormatError, match="truncated"):
+    with pytest.raises(clips.ClipFormatError, match="truncated"):
         synth.load_clip(folder)
     kp_path.unlink()
     (folder / "rig.json").unlink()
-    with pytest.raises(clip_io.ClipFormatError, match="rig.json"):
+    with pytest.raises(clips.ClipFormatError, match="rig.json"):
         synth.load_clip(folder)
 
 
@@ -168,7 +168,7 @@ def test_rendered_videos_round_trip(tmp_path):
     assert back.videos["left"].shape[:3] == (3, 480, 640)
     assert np.abs(back.videos["left"][..., 0].astype(float) - clip.videos["left"]).mean() < 8.0  # lossy mp4
     (folder / "video" / "right.mp4").write_bytes(b"not a video")
-    with pytest.raises(clip_io.ClipFormatError, match="right.mp4"):
+    with pytest.raises(clips.ClipFormatError, match="right.mp4"):
         synth.load_clip(folder, videos=True)
 
 

@@ -217,3 +217,44 @@ def test_weak_perspective_unit_conversion(x64):
     exact_s = 2 * float(cam.fx) / (T[2] * box_side)
     t_exact = triangulation.weak_perspective_to_translation(jnp.asarray(exact_s), jnp.zeros(2), jnp.asarray(box_centre), jnp.asarray(box_side), cam)
     assert abs(float(t_exact[2]) - T[2]) < 1e-12
+
+
+@pytest.mark.parametrize("weights", [[1.0, 0.0], [0.0, 1.0], [0.0, 0.0], [1.0, 1.0], [0.7, 0.4]])
+def test_spread_is_finite_with_finite_gradients_as_weights_vanish(weights):
+    rig = cameras.rig_preset("esther")
+    uv = project_rig(rig, np.array([[0.02, 0.05, 0.4]]))[0] + jnp.asarray([[0.0, 0.0], [0.8, -0.5]])
+    w = jnp.asarray(weights)
+    spread = lambda uv, w: triangulate_stereo(rig, uv, w).spread  # noqa: E731
+    assert np.isfinite(float(spread(uv, w)))
+    for grads in (jax.grad(spread, argnums=(0, 1))(uv, w), jax.jacfwd(spread, argnums=(0, 1))(uv, w)):
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grads), weights
+
+
+def test_spread_value_is_the_weighted_rms_ray_distance(x64):
+    rig = cameras.rig_preset("esther")
+    uv = project_rig(rig, np.array([[0.02, 0.05, 0.4]]))[0] + jnp.asarray([[0.0, 0.0], [1.5, -1.0]])
+    w = np.array([0.9, 0.6])
+    r = triangulate_stereo(rig, uv, jnp.asarray(w))
+    point = np.asarray(r.point)
+    distances2 = []
+    for v, camera in enumerate((rig.left, rig.right)):
+        T = np.asarray(rig.T_rig_cams[v])
+        d = T[:3, :3] @ np.asarray(camera.unproject(uv[v]))
+        offset = point - T[:3, 3]
+        distances2.append(np.sum(np.cross(offset, d / np.linalg.norm(d)) ** 2))
+    assert float(r.spread) == pytest.approx(np.sqrt(np.sum(w * np.asarray(distances2)) / np.sum(w)), rel=1e-9)
+
+
+def test_a_fisheye_pixel_beyond_the_field_of_view_does_not_observe():
+    rig = cameras.rig_preset("hot3d_aria")
+    uv = project_rig(rig, np.array([[-0.05, 0.1, 0.35]]))[0]
+    corner = jnp.asarray([rig.right.width - 0.5, rig.right.height - 0.5], uv.dtype)
+    assert not bool(rig.right.unproject_with_validity(corner)[1])  # its ray would be mirrored
+    with_corner = triangulate_stereo(rig, uv.at[1].set(corner), jnp.ones(2))
+    left_only = triangulate_stereo(rig, uv, jnp.asarray([1.0, 0.0]))
+    assert int(with_corner.num_views) == 1 and not bool(with_corner.valid)
+    np.testing.assert_allclose(np.asarray(with_corner.point), np.asarray(left_only.point), atol=1e-6)
+    assert float(with_corner.spread) == pytest.approx(float(left_only.spread), abs=1e-6)
+    loss = lambda uv, w: jnp.sum(triangulate_stereo(rig, uv, w).point) + triangulate_stereo(rig, uv, w).spread  # noqa: E731
+    grads = jax.grad(loss, argnums=(0, 1))(uv.at[1].set(corner), jnp.ones(2))
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)

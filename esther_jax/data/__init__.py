@@ -1,10 +1,10 @@
-"""Data: the synthetic egocentric stereo clip engine and clip-folder I/O.
+"""Data: the synthetic egocentric stereo clip engine (the clip-folder format itself is
+`esther_jax.clips`).
 
 Public names: `SynthConfig`, `make_clip`, `write_clip`, `load_clip`, `synthesize`
-(motion, detector simulation, rendering, crops, flow tokens), and `clip_io`.
+(motion, detector simulation, rendering, crops, flow tokens).
 """
 
-from . import clip_io as clip_io
 from .synth import Clip as Clip
 from .synth import SynthConfig as SynthConfig
 from .synth import load_clip as load_clip

@@ -33,8 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..cameras import StereoRig
+from ..mano import KEYPOINT_FINGERS
 
-FINGER_KEYPOINTS = ((1, 2, 3, 4), (5, 6, 7, 8), (9, 10, 11, 12), (13, 14, 15, 16), (17, 18, 19, 20))
+_FINGER_NAMES = tuple(KEYPOINT_FINGERS)
+"""Thumb to pinky: adjacent entries are neighbouring fingers."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,12 +74,8 @@ PRESETS: dict[str, tuple[DetectorModel, DetectorModel]] = {
 
 def project_views(rig: StereoRig, joints_rig: np.ndarray) -> np.ndarray:
     """(T, 2, J, 2) pixels of rig-frame joints (T, J, 3) in the left and right views."""
-    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
-    in_right = joints_rig @ T_right_left[:3, :3].T + T_right_left[:3, 3]
-    dtype = jnp.result_type(float)
-    left = np.asarray(rig.left.project(jnp.asarray(joints_rig, dtype)), np.float64)
-    right = np.asarray(rig.right.project(jnp.asarray(in_right, dtype)), np.float64)
-    return np.stack([left, right], axis=1)
+    uv = rig.project(jnp.asarray(joints_rig, jnp.result_type(float)))  # (2, T, J, 2)
+    return np.moveaxis(np.asarray(uv, np.float64), 0, 1)
 
 
 def simulate(
@@ -110,7 +108,7 @@ def simulate(
     swap = rng.uniform(size=(T, 2)) < model.swap_rate
     for t, v in zip(*np.nonzero(swap)):
         f = rng.integers(1, 4)  # index/middle, middle/ring or ring/pinky
-        a, b = list(FINGER_KEYPOINTS[f]), list(FINGER_KEYPOINTS[f + 1])
+        a, b = (list(KEYPOINT_FINGERS[name]) for name in _FINGER_NAMES[f : f + 2])
         uv[t, v, a + b] = uv[t, v, b + a]
     error = np.linalg.norm(uv - uv_true, axis=-1) / np.maximum(model.noise * size, 1e-6)
     conf = 0.5 * (1.0 - np.tanh(0.5 * model.confidence_slope * (error - 2.5)))  # logistic, overflow-free
@@ -145,12 +143,6 @@ def simulate_detectors(
     if preset not in PRESETS:
         raise ValueError(f"unknown detector preset {preset!r}; choose one of {sorted(PRESETS)}")
     uv_true = project_views(rig, joints_rig)
-    dtype = jnp.result_type(float)
-    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
-    in_right = joints_rig @ T_right_left[:3, :3].T + T_right_left[:3, 3]
-    in_image = np.stack(
-        [np.asarray(rig.left.is_visible(jnp.asarray(joints_rig, dtype))), np.asarray(rig.right.is_visible(jnp.asarray(in_right, dtype)))],
-        axis=1,
-    )
+    in_image = np.moveaxis(np.asarray(rig.is_visible(jnp.asarray(joints_rig, jnp.result_type(float)))), 0, 1)  # (T, 2, 21)
     runs = [simulate(rng, uv_true, visibility, in_image, (rig.left.width, rig.left.height), m) for m in PRESETS[preset]]
     return {k: np.stack([r[k] for r in runs]).astype(np.float32) for k in runs[0]}

@@ -289,19 +289,19 @@ def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -
 
 
 def _visibility(rig: StereoRig, hands: dict[str, HandTrack], object_corners, object_faces):
-    T_right_left = np.linalg.inv(np.asarray(rig.T_left_right, np.float64))
     occluders = [np.asarray(h.vertices) for h in hands.values()]
     if object_corners is not None:
         occluders.append(_object_points(object_corners, object_faces))
     occ_rig = np.concatenate(occluders, axis=1)
     per_frame = jax.vmap(_joint_visibility, in_axes=(None, 0, 0))
-    to_right = lambda p: p @ T_right_left[:3, :3].T + T_right_left[:3, 3]  # noqa: E731
     visibility, onscreen = {}, {}
     dtype = jnp.result_type(float)
+    occ_left, occ_right = rig.to_views(jnp.asarray(occ_rig, dtype))
     for side, h in hands.items():
         joints = np.asarray(h.joints)
-        left = per_frame(rig.left, jnp.asarray(joints, dtype), jnp.asarray(occ_rig, dtype))
-        right = per_frame(rig.right, jnp.asarray(to_right(joints), dtype), jnp.asarray(to_right(occ_rig), dtype))
+        joints_left, joints_right = rig.to_views(jnp.asarray(joints, dtype))
+        left = per_frame(rig.left, joints_left, occ_left)
+        right = per_frame(rig.right, joints_right, occ_right)
         visibility[side] = np.stack([np.asarray(left), np.asarray(right)], axis=1)
         onscreen[side] = np.asarray(jax.vmap(metrics.onscreen, in_axes=(0, None))(jnp.asarray(joints, dtype), rig))
     return visibility, onscreen

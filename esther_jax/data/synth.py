@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import cameras, mano
+from .. import cameras, clips, mano
 from .. import crops as crop_lib
 from ..cameras import PinholeCamera, StereoRig
-from . import clip_io, detector, flow, motion, render
+from . import detector, flow, motion, render
 
 CROP_SIZE = 224
 CROP_PADDING = 1.5
@@ -91,6 +91,7 @@ def make_clip(seed: int, index: int, cfg: SynthConfig = SynthConfig()) -> Clip:
         "detector_preset": cfg.detector_preset,
         "hands": sorted(m.hands),
         "T_world_rig": m.T_world_rig.tolist(),
+        "mano_model": {side: dict(_builtin_model_record(side)) for side in sorted(m.hands)},  # what gt.npz is of
     }
     clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt)
     if cfg.render or cfg.crops:
@@ -116,6 +117,12 @@ def _meshes_in(vertices: dict[str, np.ndarray], m: motion.ClipMotion, scene: ren
 
 
 @functools.cache
+def _builtin_model_record(side: str) -> dict[str, str]:
+    """The ground truth's parameters are of the built-in hand (motion.sample_clip)."""
+    return {"id": mano.model_id(mano.load_builtin(side)), "source": "builtin"}
+
+
+@functools.cache
 def _faces(side: str) -> np.ndarray:
     return np.asarray(mano.load_builtin(side).faces)
 
@@ -123,10 +130,10 @@ def _faces(side: str) -> np.ndarray:
 def _render_videos(clip: Clip, m: motion.ClipMotion, scene: render.Scene) -> None:
     rig = m.rig
     vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
-    for view, camera, T_rig_cam in (("left", rig.left, np.eye(4)), ("right", rig.right, np.asarray(rig.T_left_right, np.float64))):
+    T_rig_cams, T_cams_rig = np.asarray(rig.T_rig_cams, np.float64), np.asarray(rig.T_cams_rig, np.float64)
+    for view, camera, T_rig_cam, T_cam_rig in zip(("left", "right"), (rig.left, rig.right), T_rig_cams, T_cams_rig):
         rays = render._pixel_rays(camera)
         frames = []
-        T_cam_rig = np.linalg.inv(T_rig_cam)
         for t in range(len(m.T_world_rig)):
             meshes = _meshes_in(vertices, m, scene, t, T_cam_rig)
             image, _ = render.render_view(scene, camera, m.T_world_rig[t] @ T_rig_cam, meshes, rays)
@@ -148,7 +155,7 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
     rig = m.rig
     S = cfg.crop_size
     T = len(m.T_world_rig)
-    poses = (np.eye(4), np.asarray(rig.T_left_right, np.float64))
+    T_rig_cams, T_cams_rig = np.asarray(rig.T_rig_cams, np.float64), np.asarray(rig.T_cams_rig, np.float64)
     vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
     for side, track in m.hands.items():
         uv = detector.project_views(rig, np.asarray(track.joints, np.float64))  # (T, 2, 21, 2)
@@ -157,11 +164,10 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
         R = np.zeros((T, 2, 3, 3), np.float32)
         valid = np.zeros((T, 2, S, S), bool)
         boxes = np.zeros((T, 2, 4), np.float32)
-        for v, (camera, T_rig_cam) in enumerate(zip((rig.left, rig.right), poses)):
+        for v, (camera, T_rig_cam, T_cam_rig) in enumerate(zip((rig.left, rig.right), T_rig_cams, T_cams_rig)):
             raw = np.stack([_crop_box(uv[t, v]) for t in range(T)])
             smooth = cv2.GaussianBlur(raw.astype(np.float32)[:, None], (1, 5), 1.0)[:, 0] if T >= 5 else raw
             smooth = smooth + rng.normal(scale=0.02, size=smooth.shape) * (smooth[:, 2:3] - smooth[:, 0:1])
-            T_cam_rig = np.linalg.inv(T_rig_cam)
             if isinstance(camera, PinholeCamera):
                 make = lambda b, camera=camera: crop_lib.crop_camera(camera, b, S, CROP_PADDING)  # noqa: E731
             else:
@@ -208,13 +214,13 @@ def write_clip(clip: Clip, folder: str | pathlib.Path) -> pathlib.Path:
     tmp.mkdir(parents=True)
     clip.rig.to_json(tmp / "rig.json")
     for side in clip.keypoints:
-        clip_io.save_npz(clip_io.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
-        clip_io.save_npz(clip_io.hand_file(tmp, side, "gt"), **clip.gt[side])
+        clips.save_npz(clips.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
+        clips.save_npz(clips.hand_file(tmp, side, "gt"), **clip.gt[side])
         if side in clip.crops:
-            clip_io.save_npz(tmp / "crops" / f"{side}.npz", **clip.crops[side])
+            clips.save_npz(tmp / "crops" / f"{side}.npz", **clip.crops[side])
     for view, frames in clip.videos.items():
         _write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
-    clip_io.write_meta(tmp, **clip.meta)
+    clips.write_meta(tmp, **clip.meta)
     if folder.exists():
         shutil.rmtree(folder)
     tmp.rename(folder)
@@ -236,7 +242,7 @@ def read_video(path: str | pathlib.Path) -> np.ndarray:
     """(T, H, W, 3) RGB frames of an mp4 (clear error when missing or unreadable)."""
     path = pathlib.Path(path)
     if not path.is_file():
-        raise clip_io.ClipFormatError(f"{path} does not exist")
+        raise clips.ClipFormatError(f"{path} does not exist")
     capture = cv2.VideoCapture(str(path))
     frames = []
     while True:
@@ -246,35 +252,35 @@ def read_video(path: str | pathlib.Path) -> np.ndarray:
         frames.append(frame[..., ::-1])
     capture.release()
     if not frames:
-        raise clip_io.ClipFormatError(f"{path} holds no readable video frames (truncated or not an mp4)")
+        raise clips.ClipFormatError(f"{path} holds no readable video frames (truncated or not an mp4)")
     return np.stack(frames)
 
 
 def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
     """Read a clip folder back (validating every file)."""
     folder = pathlib.Path(folder)
-    meta = clip_io.read_meta(folder)
+    meta = clips.read_meta(folder)
     try:
         rig = StereoRig.from_json(folder / "rig.json")
     except ValueError as err:
-        raise clip_io.ClipFormatError(str(err)) from err
+        raise clips.ClipFormatError(str(err)) from err
     keypoints, gt, crop_data = {}, {}, {}
-    for side in clip_io.SIDES:
-        path = clip_io.hand_file(folder, side, "keypoints")
+    for side in clips.SIDES:
+        path = clips.hand_file(folder, side, "keypoints")
         if not path.exists():
             continue
-        keypoints[side] = clip_io.load_npz(path, "keypoints")
-        if clip_io.hand_file(folder, side, "gt").exists():
-            gt[side] = clip_io.load_npz(clip_io.hand_file(folder, side, "gt"), "gt")
+        keypoints[side] = clips.load_npz(path, "keypoints")
+        if clips.hand_file(folder, side, "gt").exists():
+            gt[side] = clips.load_npz(clips.hand_file(folder, side, "gt"), "gt")
         crop_path = folder / "crops" / f"{side}.npz"
         if crop_path.exists():
             try:
                 with open(crop_path, "rb") as f, np.load(f) as data:
                     crop_data[side] = {k: data[k] for k in data.files}
             except Exception as err:  # noqa: BLE001 (zip/EOF/OS errors: say which file)
-                raise clip_io.ClipFormatError(f"{crop_path} is truncated or not an npz file ({err})") from err
+                raise clips.ClipFormatError(f"{crop_path} is truncated or not an npz file ({err})") from err
     if not keypoints:
-        raise clip_io.ClipFormatError(f"{folder} has no hands/<side>/keypoints.npz")
+        raise clips.ClipFormatError(f"{folder} has no hands/<side>/keypoints.npz")
     clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt, crops=crop_data)
     if videos:
         clip.videos = {view: read_video(folder / "video" / f"{view}.mp4") for view in ("left", "right")}

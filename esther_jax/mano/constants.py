@@ -26,6 +26,22 @@ KEYPOINT_NAMES: tuple[str, ...] = (
     "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
     "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
 )  # fmt: skip
+"""Name of each of the 21 keypoints (MediaPipe order)."""
+
+KEYPOINT_PARENTS: tuple[int, ...] = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)
+"""Parent of each of the 21 keypoints (bones of the 21-keypoint skeleton); -1 for the wrist."""
+
+KEYPOINT_FINGERS: dict[str, tuple[int, int, int, int]] = {
+    "thumb": (1, 2, 3, 4),
+    "index": (5, 6, 7, 8),
+    "middle": (9, 10, 11, 12),
+    "ring": (13, 14, 15, 16),
+    "pinky": (17, 18, 19, 20),
+}
+"""Keypoints of each finger, proximal to distal (thumb CMC..tip, others MCP..tip), thumb to pinky."""
+
+PALM_KEYPOINTS: tuple[int, ...] = (0, 1, 5, 9, 13, 17)
+"""Wrist, thumb CMC, index/middle/ring/pinky MCP: rigid with the wrist in MANO."""
 
 FINGERTIP_IDS_SMPLX: tuple[int, ...] = (744, 320, 443, 554, 671)
 """Fingertip vertex ids (thumb, index, middle, ring, pinky) of smplx, HOT3D and HaMeR."""

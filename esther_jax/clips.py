@@ -20,7 +20,7 @@ import zipfile
 
 import numpy as np
 
-from .._io import read_json
+from ._io import read_json
 
 SIDES = ("right", "left")
 
