@@ -6,17 +6,31 @@ file without `valid` counts every frame as emitted). Per the paper's protocol
 (appendix L), a frame is scored when the hand is on-screen in the ground truth and the
 prediction emitted it; jitter is gated the same way. Per-frame errors -> per-clip means
 -> clip-weighted dataset means with bootstrap intervals over clips (appendix J).
+
+Joints are always comparable and always scored. MANO parameters are compared
+(`pose_angle`: mean geodesic angle of the 15 hand joints' rotations, degrees;
+`betas_rmse`: RMS difference of the shape coefficients) only when the prediction and
+the ground truth are parameters of the same model: the `mano_model` id
+(`mano.model_id`) recorded in the hand's `quality.json` or the folder's `meta.json`
+(`esther label` and `esther synth` write it). A hand whose models differ, or where a
+side records no model (folders written before ids were recorded), is not compared:
+`parameters="auto"` (the default) scores its joints, leaves it out of the parameter
+metrics and says why in `metrics.json["parameters"]["not_compared"]`;
+`parameters="require"` refuses (ValueError: `esther evaluate` exits 2) so a table of
+parameter errors is never silently partial; `parameters="skip"` scores joints only.
 """
 
+import dataclasses
 import json
+import math
 import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import metrics
-from ..data import clip_io
+from .. import clips, metrics
+from ..rotations import axis_angle_to_matrix, geodesic_angle
 from . import reports
 
 _FRAME_METRICS = {
@@ -34,17 +48,74 @@ def _frame_errors(pred, gt):
     return out
 
 
-def evaluate_hand(pred: dict, gt: dict, fps: float) -> dict:
-    """Per-clip scores of one hand (metres, m/s^2) and the frames they used."""
+PARAMETER_MODES = ("auto", "require", "skip")
+_PARAM_METRICS = {"pose_angle": (180.0 / math.pi, "deg"), "betas_rmse": (1.0, "")}
+"""Parameter metrics: scale from the stored unit (radians, betas) and the table unit."""
+
+
+@jax.jit
+def _parameter_errors(pred_pose, gt_pose, pred_betas, gt_betas):
+    angles = geodesic_angle(axis_angle_to_matrix(pred_pose), axis_angle_to_matrix(gt_pose))  # (T, 15) radians
+    pose = jnp.mean(angles, axis=-1)
+    betas = jnp.sqrt(jnp.mean(jnp.square(pred_betas - gt_betas)))  # one shape per clip: the same every frame
+    return {"pose_angle": pose, "betas_rmse": jnp.broadcast_to(betas, pose.shape)}
+
+
+def _recorded_model(folder: str | pathlib.Path, side: str) -> dict | None:
+    """The `{"id", "source"}` of the model whose parameters a folder holds for `side`:
+    the hand's `quality.json` `mano_model`, else `meta.json` `mano_model[side]`; None
+    when neither records one (or the files cannot be read)."""
+    folder = pathlib.Path(folder)
+    for path, key in ((folder / "hands" / side / "quality.json", None), (folder / "meta.json", side)):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        record = data.get("mano_model") if isinstance(data, dict) else None
+        if key is not None and isinstance(record, dict):
+            record = record.get(key)
+        if isinstance(record, dict) and isinstance(record.get("id"), str):
+            return record
+    return None
+
+
+def _incomparable(pred_model: dict | None, gt_model: dict | None) -> str | None:
+    """Why the parameters of two recorded models cannot be compared (None: they can)."""
+    unknown = [name for name, m in (("prediction", pred_model), ("ground truth", gt_model)) if m is None]
+    if unknown:
+        return (
+            f"the {' and the '.join(unknown)} record{'s' if len(unknown) == 1 else ''} no MANO model (a folder "
+            "written before model ids were recorded?) and parameters of an unknown model are not comparable; "
+            'relabel, or record the model in the folder\'s meta.json: "mano_model": {"<side>": {"id": mano.model_id(model)}}'
+        )
+    if pred_model["id"] != gt_model["id"]:
+        return (
+            f"the prediction is parameters of MANO model {pred_model['id']} ({pred_model.get('source', '?')}), "
+            f"the ground truth of {gt_model['id']} ({gt_model.get('source', '?')})"
+        )
+    return None
+
+
+def evaluate_hand(pred: dict, gt: dict, fps: float, *, parameters: bool = False) -> dict:
+    """Per-clip scores of one hand (metres, m/s^2) and the frames they used.
+
+    `parameters=True` also scores `pose_angle` (radians) and `betas_rmse`: only for a
+    prediction and ground truth of the same MANO model (the caller checks).
+    """
     T = gt["joints"].shape[0]
     if pred["joints"].shape != gt["joints"].shape:
-        raise clip_io.ClipFormatError(f"prediction has {pred['joints'].shape[0]} frames, ground truth {T}")
+        raise clips.ClipFormatError(f"prediction has {pred['joints'].shape[0]} frames, ground truth {T}")
     emitted = pred.get("valid", np.ones(T, bool))
     frames = gt["onscreen"] & emitted
     errors = _frame_errors(jnp.asarray(pred["joints"]), jnp.asarray(gt["joints"]))
     scores = {name: metrics.clip_mean(errors[name], jnp.asarray(frames)) for name in _FRAME_METRICS}
     scores["jitter"] = metrics.jitter(jnp.asarray(pred["joints"]), jnp.asarray(frames), fps)
     scores["gt_jitter"] = metrics.jitter(jnp.asarray(gt["joints"]), jnp.asarray(gt["onscreen"]), fps)
+    if parameters:
+        dtype = jnp.result_type(float)
+        cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731  (files may hold float32 and float64)
+        param_errors = _parameter_errors(cast(pred["hand_pose"]), cast(gt["hand_pose"]), cast(pred["betas"]), cast(gt["betas"]))
+        scores.update({name: metrics.clip_mean(param_errors[name], jnp.asarray(frames)) for name in _PARAM_METRICS})
     return {
         "scores": {k: (float(v.value), int(v.count)) for k, v in scores.items()},
         "frames": frames,
@@ -63,23 +134,42 @@ def evaluate_folders(
     condition: str = "clean",
     seed: int = 0,
     num_resamples: int = 2000,
+    parameters: str = "auto",
 ) -> dict:
     """Evaluate every (clip, hand) of `gt_root` that `pred_root` labels; write
-    `metrics.json`, `table.md`, `table.csv`, `depth_scatter.png` and `pck.png` to `out_dir`."""
+    `metrics.json`, `table.md`, `table.csv`, `depth_scatter.png` and `pck.png` to `out_dir`.
+
+    `parameters` ('auto', 'require' or 'skip') says what to do with the MANO parameter
+    metrics (module docstring): joints are scored in every mode.
+    """
+    if parameters not in PARAMETER_MODES:
+        raise ValueError(f"parameters must be one of {PARAMETER_MODES}, got {parameters!r}")
     pred_root, out_dir = pathlib.Path(pred_root), pathlib.Path(out_dir)
-    per_clip, missing = [], []
+    per_clip, missing, compared, not_compared = [], [], [], []
     all_errors, z_pred, z_gt = [], [], []
-    for clip in clip_io.list_clips(gt_root):
-        fps = float(clip_io.read_meta(clip)["fps"])
-        for side in clip_io.SIDES:
-            gt_path = clip_io.hand_file(clip, side, "gt")
+    for clip in clips.list_clips(gt_root):
+        fps = float(clips.read_meta(clip)["fps"])
+        for side in clips.SIDES:
+            gt_path = clips.hand_file(clip, side, "gt")
             if not gt_path.is_file():
                 continue
-            pred_path = clip_io.hand_file(pred_root / clip.name, side, "labels")
+            pred_path = clips.hand_file(pred_root / clip.name, side, "labels")
             if not pred_path.is_file():
                 missing.append(f"{clip.name}/{side}")
                 continue
-            result = evaluate_hand(clip_io.load_npz(pred_path, "labels"), clip_io.load_npz(gt_path, "gt"), fps)
+            hand = f"{clip.name}/{side}"
+            reason = None if parameters == "skip" else _incomparable(_recorded_model(pred_root / clip.name, side), _recorded_model(clip, side))
+            if reason is not None and parameters == "require":
+                raise ValueError(
+                    f"{hand}: MANO parameters are not comparable: {reason}. Joints always are: "
+                    "evaluate with parameters 'auto' or 'skip' (esther evaluate --params auto|skip)"
+                )
+            if reason is not None:
+                not_compared.append({"hand": hand, "reason": reason})
+            elif parameters != "skip":
+                compared.append(hand)
+            pred_labels, gt_arrays = clips.load_npz(pred_path, "labels"), clips.load_npz(gt_path, "gt")
+            result = evaluate_hand(pred_labels, gt_arrays, fps, parameters=parameters != "skip" and reason is None)
             per_clip.append({"clip": clip.name, "side": side, **result["scores"], "coverage": result["coverage"]})
             all_errors.append(result["joint_errors_p"].reshape(-1))
             z_pred.append(result["wrist_z"][0])
@@ -89,12 +179,15 @@ def evaluate_folders(
 
     key = jax.random.key(seed)
     records, summary = [], {}
-    for i, name in enumerate(list(_FRAME_METRICS) + ["jitter", "gt_jitter"]):
-        values = np.asarray([c[name][0] for c in per_clip])
-        has = np.asarray([c[name][1] > 0 for c in per_clip])
+    names = list(_FRAME_METRICS) + ["jitter", "gt_jitter"] + (list(_PARAM_METRICS) if compared else [])
+    for i, name in enumerate(names):
+        values = np.asarray([c.get(name, (np.nan, 0))[0] for c in per_clip])
+        has = np.asarray([c.get(name, (np.nan, 0))[1] > 0 for c in per_clip])
         b = metrics.bootstrap(values, jax.random.fold_in(key, i), n=num_resamples, mask=has)
-        scale = 1.0 if "jitter" in name else 1000.0
+        scale = 1.0 if "jitter" in name else _PARAM_METRICS[name][0] if name in _PARAM_METRICS else 1000.0
         record = reports.Record.from_bootstrap(method, condition, name, b, scale)
+        if name in _PARAM_METRICS:
+            record = dataclasses.replace(record, unit=_PARAM_METRICS[name][1])
         records.append(record)
         summary[name] = {k: getattr(record, k) for k in ("value", "std", "ci_low", "ci_high", "unit", "num_clips")}
     errors = np.concatenate(all_errors) if all_errors else np.zeros(0)
@@ -118,6 +211,12 @@ def evaluate_folders(
         "missing_predictions": missing,
         "coverage": scored / max(onscreen, 1),
         "metrics": summary,
+        "parameters": {
+            "mode": parameters,
+            "metrics": list(_PARAM_METRICS) if compared else [],
+            "compared": compared,
+            "not_compared": not_compared,
+        },
         "depth_scatter": {k: float(getattr(scatter, k)) for k in ("slope", "intercept", "correlation", "systematic_mm", "random_mm", "rmse_mm", "count")},
         "per_clip": per_clip,
         "figures": figures,

@@ -2,7 +2,7 @@
 
 Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch`, `forward_joints`,
 `forward_rotations`, `with_shape`, `with_pose`, `with_rotations`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
-`save_mano_pkl`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
+`save_mano_pkl`, `model_id`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
 `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`, `export_mesh`,
 `anatomical_frames`, `JOINT_LIMITS`, and the joint-order constants.
 """
@@ -13,10 +13,13 @@ from .anatomy import anatomical_to_hand_pose as anatomical_to_hand_pose
 from .anatomy import hand_pose_to_anatomical as hand_pose_to_anatomical
 from .constants import FINGERTIP_IDS_MANOPTH as FINGERTIP_IDS_MANOPTH
 from .constants import FINGERTIP_IDS_SMPLX as FINGERTIP_IDS_SMPLX
+from .constants import KEYPOINT_FINGERS as KEYPOINT_FINGERS
 from .constants import KEYPOINT_FROM_MANO as KEYPOINT_FROM_MANO
 from .constants import KEYPOINT_NAMES as KEYPOINT_NAMES
+from .constants import KEYPOINT_PARENTS as KEYPOINT_PARENTS
 from .constants import MANO_JOINT_NAMES as MANO_JOINT_NAMES
 from .constants import MANO_PARENTS as MANO_PARENTS
+from .constants import PALM_KEYPOINTS as PALM_KEYPOINTS
 from .conventions import from_smplx as from_smplx
 from .conventions import mirror_params as mirror_params
 from .conventions import mirror_points as mirror_points
@@ -38,5 +41,6 @@ from .kinematics import with_shape as with_shape
 from .model import ManoModel as ManoModel
 from .model import ManoOutput as ManoOutput
 from .model import ManoParams as ManoParams
+from .model import model_id as model_id
 from .pca import hand_pose_to_pca as hand_pose_to_pca
 from .pca import pca_to_hand_pose as pca_to_hand_pose

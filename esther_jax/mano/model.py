@@ -5,6 +5,8 @@ user's official file) and is data, not weights: pass it beside a network or fit.
 `ManoParams` is one hand in one frame. Conventions: ARCHITECTURE.md.
 """
 
+import hashlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -147,6 +149,41 @@ def _active_columns(posedirs: Array) -> tuple[int, ...]:
     except jax.errors.TracerArrayConversionError:
         return tuple(range(NUM_POSE_FEATURES))
     return tuple(int(i) for i in np.flatnonzero(np.any(dense != 0, axis=(0, 1))))
+
+
+_IDENTITY_ARRAYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "hands_components", "hands_mean")
+"""The float arrays that define what a set of MANO parameters means (faces do not:
+they connect the mesh but move no vertex or joint)."""
+
+
+def model_id(model: ManoModel) -> str:
+    """A stable identity of the model that MANO parameters are parameters of.
+
+    `'<side>-<16 hex digits>'`: the side and the start of a sha256 over the arrays that
+    define the parameterisation (template, shape and pose blend shapes, joint regressor,
+    skinning weights, PCA pose space, kinematic tree, fingertip vertex ids). Floats are
+    hashed as float32 (the training precision) with -0.0 made +0.0, so the id does not
+    depend on the x64 flag, and a model written with `save_mano_pkl` and read back with
+    `load_mano_pkl` keeps its id; two models get the same id if and only if they agree to
+    float32 precision. Parameters (betas, pose) of models with different ids must not be
+    compared; their joints always can be.
+
+    Needs a concrete model (not one traced inside `jit`).
+    """
+    digest = hashlib.sha256(b"esther-mano-model-v1")
+    try:
+        floats = {name: np.asarray(getattr(model, name), np.float32) for name in _IDENTITY_ARRAYS}
+        is_right = bool(model.is_right)
+        tips = np.asarray(model.fingertip_ids, np.int64)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
+        raise ValueError("model_id needs a concrete ManoModel; call it outside jit/vmap") from err
+    for name, values in floats.items():
+        digest.update(f"{name}{values.shape}".encode())
+        digest.update(np.ascontiguousarray(values + np.float32(0.0), "<f4").tobytes())  # -0.0 + 0.0 == +0.0
+    digest.update(f"fingertip_ids{tips.shape}".encode() + np.ascontiguousarray(tips, "<i8").tobytes())
+    digest.update(f"parents{model.parents}".encode())
+    side = "right" if is_right else "left"
+    return f"{side}-{digest.hexdigest()[:16]}"
 
 
 class ManoParams(eqx.Module):
