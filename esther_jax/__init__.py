@@ -3,4 +3,6 @@
 Shapes and conventions: ARCHITECTURE.md. Functions take one example; batch with `jax.vmap`.
 """
 
+from .compilation import enable_compilation_cache as enable_compilation_cache
+
 __version__ = "0.1.0"

@@ -18,6 +18,12 @@ def main(argv: list[str] | None = None) -> int:
     evaluate.add_argument("--out", default="evaluation", help="output folder (default: ./evaluation)")
     evaluate.add_argument("--method", default="prediction", help="method name for the tables")
     evaluate.add_argument("--seed", type=int, default=0, help="bootstrap seed")
+    evaluate.add_argument(
+        "--params", default="auto", choices=["auto", "require", "skip"],
+        help="MANO parameter metrics (pose angle, betas), only between labels of the same model: 'auto' compares "
+        "the hands whose recorded models match and says which it did not; 'require' fails unless all match; "
+        "'skip' scores joints only. Joints are always scored",
+    )  # fmt: skip
     synth = commands.add_parser("synth", help="make synthetic egocentric stereo clips with exact ground truth")
     synth.add_argument("--out", required=True, help="output folder (clip_00000, clip_00001, ...)")
     synth.add_argument("--clips", type=int, default=10, help="number of clips (an interrupted run resumes)")
@@ -34,8 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     label.add_argument("--resume", action="store_true", help="skip clips whose labels are complete")
     label.add_argument("--reject", help="human-review reject list: lines 'clip,side,frame'")
     label.add_argument("--review", action="store_true", help="also write a contact sheet of flagged frames per hand")
+    label.add_argument(
+        "--mano", metavar="DIR",
+        help="fit your official MANO models, DIR/MANO_RIGHT.pkl and DIR/MANO_LEFT.pkl (or DIR/models/...), "
+        "instead of the built-in hand; the labels record which model they are parameters of",
+    )  # fmt: skip
     args = parser.parse_args(argv)
-    _enable_compilation_cache()
+    from . import enable_compilation_cache
+
+    enable_compilation_cache()
     if args.command == "demo":
         from .demo import run
 
@@ -56,24 +69,20 @@ def main(argv: list[str] | None = None) -> int:
         from .eval import evaluate_folders
 
         try:
-            result = evaluate_folders(args.pred, args.gt, args.out, method=args.method, seed=args.seed)
-        except ValueError as err:  # bad folders or files: say what, no traceback
+            result = evaluate_folders(args.pred, args.gt, args.out, method=args.method, seed=args.seed, parameters=args.params)
+        except ValueError as err:  # bad folders or files, models that differ with --params require: say what
             print(f"esther evaluate: {err}", file=sys.stderr)
             return 2
+        skipped = result["parameters"]["not_compared"]
+        if skipped:
+            print(
+                f"esther evaluate: MANO parameters (pose, betas) not compared for {len(skipped)} of {result['num_hands']} "
+                f"hands, joints scored for all (list in metrics.json); first, {skipped[0]['hand']}: {skipped[0]['reason']}",
+                file=sys.stderr,
+            )
         print((pathlib.Path(args.out) / "table.md").read_text())
         print(f"{result['num_hands']} hands, coverage {result['coverage']:.1%}; wrote {pathlib.Path(args.out).resolve()}")
     return 0
-
-
-def _enable_compilation_cache() -> None:
-    """Persist XLA compilations between runs (the teacher's solvers take ~40 s to compile)."""
-    import os
-
-    import jax
-
-    path = os.environ.get("ESTHER_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "esther_jax", "xla"))
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 def _label(args) -> int:
@@ -82,21 +91,22 @@ def _label(args) -> int:
     from fitting import label_clips, read_reject_list
     from fitting.label import review_clip
 
-    from .data import clip_io
+    from .clips import ClipFormatError, list_clips
 
     clips = []
     for path in args.clips:
         try:
-            clips.extend(clip_io.list_clips(path))
-        except clip_io.ClipFormatError as err:
+            clips.extend(list_clips(path))
+        except ClipFormatError as err:
             print(f"esther label: {err}", file=sys.stderr)
             return 2
     try:
         rejects = read_reject_list(args.reject) if args.reject else frozenset()
-    except (OSError, ValueError) as err:
+        models, sources = _mano_models(args.mano) if args.mano else (None, None)
+    except (OSError, ValueError) as err:  # includes mano.ManoFileError
         print(f"esther label: {err}", file=sys.stderr)
         return 2
-    result = label_clips(clips, args.out, resume=args.resume, rejects=rejects)
+    result = label_clips(clips, args.out, resume=args.resume, rejects=rejects, models=models, model_sources=sources)
     if args.review:
         for summary in result["labelled"]:
             for sheet in review_clip(next(c for c in clips if c.name == summary["clip"]), pathlib.Path(args.out)):
@@ -110,6 +120,30 @@ def _label(args) -> int:
     )
     (pathlib.Path(args.out) / "label_summary.json").write_text(json.dumps(result, indent=1, default=float))
     return 1 if result["failed"] and not result["labelled"] else 0
+
+
+def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:
+    """Both hands of the user's official MANO models (`--mano DIR`) and their paths."""
+    from . import mano
+
+    root = pathlib.Path(folder)
+    if not root.is_dir():
+        raise mano.ManoFileError(f"--mano {folder} is not a folder; give the folder that holds MANO_RIGHT.pkl and MANO_LEFT.pkl")
+    if not (root / "MANO_RIGHT.pkl").exists() and (root / "models" / "MANO_RIGHT.pkl").exists():
+        root = root / "models"  # the official download unpacks to mano_v*_*/models/
+    models, sources = {}, {}
+    for side in ("right", "left"):
+        path = root / f"MANO_{side.upper()}.pkl"
+        if not path.is_file():
+            raise mano.ManoFileError(
+                f"{path} is missing: --mano needs both MANO_RIGHT.pkl and MANO_LEFT.pkl (your licensed files from "
+                "https://mano.is.tue.mpg.de; we never ship or download them)"
+            )
+        models[side] = mano.load_mano_pkl(path, side=side)
+        sources[side] = str(path.resolve())
+        fixed = " (x shapedirs negated: the official left model's sign bug, smplx#48)" if bool(models[side].left_shapedirs_fixed) else ""
+        print(f"{side} hand: {path} = MANO model {mano.model_id(models[side])}{fixed}")
+    return models, sources
 
 
 if __name__ == "__main__":

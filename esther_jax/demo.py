@@ -23,7 +23,7 @@ from .eval import evaluate_folders
 
 def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0, frames: int = 128) -> dict[str, pathlib.Path]:
     from fitting import label_clips
-    from fitting.review import contact_sheet, overlay_mesh, project_views
+    from fitting.review import contact_sheet, overlay_mesh
 
     t_start = time.perf_counter()
     out = pathlib.Path(out_dir)
@@ -48,14 +48,18 @@ def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0, frames: i
         quality = json.loads((labels_dir / "clip_00000" / "hands" / side / "quality.json").read_text())
         print(f"{side} hand: {hand['valid']}/{hand['frames']} frames valid, {hand['seconds']:.2f} s "
               f"(the first hand of a cold run includes compilation), pass rate {quality['share_passing']:.1%}")
-        for name, row in quality["table"].items():
-            if row:
-                print(f"    {name:<40} median {row['median']:7.2f}  mean {row['mean']:7.2f}  p90 {row['p90']:7.2f}")
+        for group in ("stereo", "monocular"):
+            if not quality[group]["passing"]:
+                continue
+            print(f"  {group} frames ({quality[group]['passing']} passing):")
+            for name, row in quality[group]["table"].items():
+                if row:
+                    print(f"    {name:<40} median {row['median']:7.2f}  mean {row['mean']:7.2f}  p90 {row['p90']:7.2f}")
     gt_jitter = metrics["metrics"]["gt_jitter"]["value"]
     print(f"ground truth's own jitter: {gt_jitter:.2f} m/s^2; labelling took {label_seconds:.1f} s including compilation")
 
     print("4/4 drawing the fitted meshes over both views")
-    figure = _overlays(clip, labels_dir / "clip_00000", out / "overlays.png", seed, contact_sheet, overlay_mesh, project_views)
+    figure = _overlays(clip, labels_dir / "clip_00000", out / "overlays.png", seed, contact_sheet, overlay_mesh)
     right_labels = np.load(labels_dir / "clip_00000" / "hands" / "right" / "labels.npz")
     model = mano.load_builtin("right")
     t = int(np.flatnonzero(right_labels["valid"])[0]) if right_labels["valid"].any() else 0
@@ -76,7 +80,7 @@ def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0, frames: i
     return paths
 
 
-def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, project_views, num: int = 3) -> pathlib.Path:
+def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, num: int = 3) -> pathlib.Path:
     """Render a few frames of both views and blend the fitted meshes over them."""
     rig = clip.rig
     scene = render.sample_scene(np.random.default_rng([seed, 99]))
@@ -95,16 +99,17 @@ def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, projec
             meshes_gt.append((np.asarray(mano.forward(model, gt_params).vertices, np.float64), np.asarray(model.faces), scene.skin))
             params = mano.ManoParams(*(jnp.asarray(lab[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(lab["betas"]), jnp.asarray(lab["transl"][t]))
             fitted.append((side, np.asarray(mano.forward(model, params).vertices, np.float64), np.asarray(model.faces), bool(lab["valid"][t])))
+        dtype = jnp.result_type(float)
+        gt_views = [(np.asarray(rig.to_views(jnp.asarray(m, dtype)), np.float64), f, a) for m, f, a in meshes_gt]  # (2, V, 3) each
+        fit_uv = [np.asarray(rig.project(jnp.asarray(verts, dtype)), np.float64) for _, verts, _, _ in fitted]  # (2, V, 2)
+        fit_depth = [np.asarray(rig.depths(jnp.asarray(verts, dtype)), np.float64) for _, verts, _, _ in fitted]  # (2, V)
         row = []
-        for v, (camera, T_rig_cam) in enumerate(((rig.left, np.eye(4)), (rig.right, np.asarray(rig.T_left_right, np.float64)))):
-            T_cam_rig = np.linalg.inv(T_rig_cam)
-            in_cam = [(m @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3], f, a) for m, f, a in meshes_gt]
+        for v, (camera, T_rig_cam) in enumerate(zip((rig.left, rig.right), np.asarray(rig.T_rig_cams, np.float64))):
+            in_cam = [(m[v], f, a) for m, f, a in gt_views]
             image, _ = render.render_view(scene, camera, T_world_rig[t] @ T_rig_cam, in_cam)
-            for side, verts, faces, ok in fitted:
-                uv = project_views(rig, verts)[v]
-                depth = (verts @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3])[:, 2]
+            for (side, _, faces, ok), uv, depth in zip(fitted, fit_uv, fit_depth):
                 if ok:
-                    image = overlay_mesh(image, uv, depth, faces, colours[side], alpha=0.55)
+                    image = overlay_mesh(image, uv[v], depth[v], faces, colours[side], alpha=0.55)
             row.append(image)
         tiles.append(row)
         captions.append(f"frame {t}: fitted labels (pink right, blue left) over the rendered left / right views")

@@ -1,18 +1,41 @@
-"""fitting: the ESTHER teacher (stereo 2D keypoints -> metric MANO labels).
+"""fitting: the ESTHER teacher (2D keypoints of any rig -> metric MANO labels).
 
 Built only on the public `esther_jax` names, so teacher and network share one jitted
-kinematics (ARCHITECTURE.md, "The teacher"). Public names: `label_hand` (one hand of
-one clip), `label_clip`, `label_clips` (folders, atomic, resumable), `LabelConfig`,
-`FitWeights`, the priors `PosePrior` and `MotionPrior`, `fuse`, and `review_sheet`.
+kinematics. The paper's stages are public, typed functions over `eqx.Module`s:
+
+    fuse -> prefilter -> initialise -> shape_lock -> fit_frames -> refine_motion
+         -> reprojection_filter -> label_quality
+
+`label_hand` is their composition for one hand of one clip; `label_clip` / `label_clips`
+label clip folders (atomic, resumable). Priors are pluggable (`PosePrior`,
+`MotionPrior`); the solver is part of `LabelConfig` (`SOLVERS`).
 """
 
+from .fusion import Fused as Fused
 from .fusion import fuse as fuse
+from .evidence import Evidence as Evidence
+from .evidence import Initial as Initial
+from .evidence import initialise as initialise
+from .evidence import prefilter as prefilter
+from .evidence import template_bones as template_bones
 from .label import label_clip as label_clip
 from .label import label_clips as label_clips
 from .label import read_reject_list as read_reject_list
 from .objectives import FitWeights as FitWeights
+from .objectives import Problem as Problem
 from .pipeline import LabelConfig as LabelConfig
 from .pipeline import label_hand as label_hand
 from .priors import MotionPrior as MotionPrior
 from .priors import PosePrior as PosePrior
+from .quality import depth_per_disparity as depth_per_disparity
+from .quality import frame_quality as frame_quality
+from .quality import label_quality as label_quality
+from .quality import reprojection_filter as reprojection_filter
 from .review import review_sheet as review_sheet
+from .solve import SOLVERS as SOLVERS
+from .stages import Fits as Fits
+from .stages import ShapeLock as ShapeLock
+from .stages import fit_frames as fit_frames
+from .stages import frame_data as frame_data
+from .stages import refine_motion as refine_motion
+from .stages import shape_lock as shape_lock

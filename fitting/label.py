@@ -1,12 +1,15 @@
-"""Labelling clip folders: `esther label CLIP_DIR... --out DIR [--resume] [--reject FILE]`.
+"""Labelling clip folders: `esther label CLIP_DIR... --out DIR [--resume] [--reject FILE] [--mano DIR]`.
 
 Each clip's labels (`<out>/<clip>/hands/<side>/labels.npz` + `quality.json`) are built
 in a hidden folder and renamed into place when complete, so `--resume` skips finished
 clips and an interruption never leaves a half-written one. A clip that fails (missing
 or corrupt file, degenerate rig) is reported and does not stop the others. A reject
-list (human review, the third filter stage) marks hand-frames invalid.
+list (human review, the third filter stage) marks hand-frames invalid. The labels are
+MANO parameters of the built-in hand or of the user's models (`--mano DIR`: their
+official `MANO_RIGHT.pkl` / `MANO_LEFT.pkl`), and record which (`mano.model_id`).
 """
 
+import functools
 import json
 import pathlib
 import shutil
@@ -14,9 +17,8 @@ import time
 
 import numpy as np
 
-from esther_jax import mano
+from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
-from esther_jax.data import clip_io
 
 from .pipeline import LabelConfig, label_hand
 
@@ -29,7 +31,7 @@ def read_reject_list(path: str | pathlib.Path) -> frozenset[tuple[str, str, int]
         if not line:
             continue
         parts = [p.strip() for p in line.split(",")]
-        if len(parts) != 3 or parts[1] not in clip_io.SIDES or not parts[2].isdigit():
+        if len(parts) != 3 or parts[1] not in clips.SIDES or not parts[2].isdigit():
             raise ValueError(f"{path}:{number}: expected 'clip,side,frame' (side right|left), got {line!r}")
         rejects.add((parts[0], parts[1], int(parts[2])))
     return frozenset(rejects)
@@ -41,53 +43,87 @@ def label_clip(
     config: LabelConfig = LabelConfig(),
     rejects: frozenset[tuple[str, str, int]] = frozenset(),
     models: dict[str, mano.ManoModel] | None = None,
+    model_sources: dict[str, str] | None = None,
 ) -> dict:
-    """Label every hand of one clip folder into `out_dir/<clip name>/` (atomically)."""
+    """Label every hand of one clip folder into `out_dir/<clip name>/` (atomically).
+
+    Args:
+        models: the hand model per side ('right', 'left'), e.g. the user's official MANO
+            files read with `mano.load_mano_pkl`; a side left out is fitted with the
+            built-in hand.
+        model_sources: where each of `models` came from (a path), recorded beside the
+            model's id; by default 'builtin' when the model is the built-in one, else 'user'.
+
+    The labels record which model they are parameters of: `meta.json` gets
+    `"mano_model": {side: {"id": mano.model_id(model), "source": ...}}` for the labelled
+    sides, and each hand's `quality.json` its own `"mano_model"` entry.
+    """
     clip_dir, out_dir = pathlib.Path(clip_dir), pathlib.Path(out_dir)
-    meta = clip_io.read_meta(clip_dir)
+    meta = clips.read_meta(clip_dir)
     rig = StereoRig.from_json(clip_dir / "rig.json")
-    sides = [s for s in clip_io.SIDES if clip_io.hand_file(clip_dir, s, "keypoints").is_file()]
+    sides = [s for s in clips.SIDES if clips.hand_file(clip_dir, s, "keypoints").is_file()]
     if not sides:
-        raise clip_io.ClipFormatError(f"{clip_dir} has no hands/<side>/keypoints.npz")
+        raise clips.ClipFormatError(f"{clip_dir} has no hands/<side>/keypoints.npz")
     final = out_dir / clip_dir.name
     tmp = out_dir / f".{clip_dir.name}.partial"
     if tmp.exists():
         shutil.rmtree(tmp)
     summary = {"clip": clip_dir.name, "hands": {}}
     try:
-        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, summary)
+        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a failed clip leaves nothing behind
         raise
-    clip_io.write_meta(tmp, **{**meta, "labelled_by": "esther teacher"})
+    # replaces any "mano_model" of the input clip's meta (that one describes its gt.npz)
+    recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
+    clips.write_meta(tmp, **{**meta, "labelled_by": "esther teacher", "mano_model": recorded})
     if final.exists():
         shutil.rmtree(final)
     tmp.rename(final)
     return summary
 
 
-def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, summary) -> None:
+def _hand_model(side: str, models: dict | None, sources: dict | None) -> tuple[mano.ManoModel, dict[str, str]]:
+    """The model a side is fitted with, and its record `{"id", "source"}` for the labels."""
+    model = (models or {}).get(side)
+    if model is None:
+        return mano.load_builtin(side), {"id": _builtin_id(side), "source": "builtin"}
+    if model.side != side:
+        raise ValueError(f"models[{side!r}] is a {model.side} hand model; pass the {side} model (e.g. MANO_{side.upper()}.pkl)")
+    model_id = mano.model_id(model)
+    source = (sources or {}).get(side)
+    if source is None:
+        source = "builtin" if model_id == _builtin_id(side) else "user"
+    return model, {"id": model_id, "source": str(source)}
+
+
+@functools.cache
+def _builtin_id(side: str) -> str:
+    return mano.model_id(mano.load_builtin(side))  # the same with and without x64
+
+
+def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary) -> None:
     for side in sides:
-        keypoints = clip_io.load_npz(clip_io.hand_file(clip_dir, side, "keypoints"), "keypoints")
-        if keypoints["uv"].shape[0] != 2:
-            raise clip_io.ClipFormatError(f"{clip_dir}: {side} keypoints have {keypoints['uv'].shape[0]} detectors; the fusion needs 2")
-        model = (models or {}).get(side) or mano.load_builtin(side)
-        mono_path = clip_io.hand_file(clip_dir, side, "monocular")
-        monocular = clip_io.load_npz(mono_path, "monocular") if mono_path.is_file() else None
+        keypoints = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
+        model, record = _hand_model(side, models, sources)
+        mono_path = clips.hand_file(clip_dir, side, "monocular")
+        monocular = clips.load_npz(mono_path, "monocular") if mono_path.is_file() else None
         t0 = time.perf_counter()
         labels, report = label_hand(model, rig, keypoints, float(meta["fps"]), config, monocular)
         report["seconds"] = time.perf_counter() - t0
+        report["mano_model"] = record
         rejected = [f for (c, s, f) in rejects if c == clip_dir.name and s == side and f < len(labels["valid"])]
         if rejected:
             labels["valid"][rejected] = False
             report["human_rejected_frames"] = sorted(rejected)
-        clip_io.save_npz(clip_io.hand_file(tmp, side, "labels"), **labels)
+        clips.save_npz(clips.hand_file(tmp, side, "labels"), **labels)
         (tmp / "hands" / side / "quality.json").write_text(json.dumps(report, indent=1, default=float))
         summary["hands"][side] = {
             "frames": len(labels["valid"]),
             "valid": int(labels["valid"].sum()),
             "seconds": report["seconds"],
             "notes": report.get("notes", []),
+            "mano_model": record,
         }
 
 
@@ -99,20 +135,32 @@ def label_clips(
     config: LabelConfig = LabelConfig(),
     rejects: frozenset[tuple[str, str, int]] = frozenset(),
     progress: bool = True,
+    models: dict[str, mano.ManoModel] | None = None,
+    model_sources: dict[str, str] | None = None,
 ) -> dict:
-    """Label many clips; failures are collected, not raised."""
+    """Label many clips; failures are collected, not raised.
+
+    `models` / `model_sources` as in `label_clip` (checked once, before any clip). With
+    `resume`, a clip is skipped only when its finished labels are of the same models
+    (the `mano_model` ids of its `meta.json`; labels that record none are of the built-in
+    hand); labels of other models are redone.
+    """
     from tqdm import tqdm
 
+    unknown = set(models or {}) - set(clips.SIDES)
+    if unknown:
+        raise ValueError(f"models has unknown sides {sorted(unknown)}; use {clips.SIDES}")
+    wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     done, skipped, failed = [], [], []
     frames, seconds = 0, 0.0
     for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="label", unit="clip", disable=not progress):
-        if resume and (out_dir / clip.name / "meta.json").exists():
+        if resume and _labelled_with(out_dir / clip.name / "meta.json", wanted):
             skipped.append(clip.name)
             continue
         try:
-            summary = label_clip(clip, out_dir, config, rejects)
+            summary = label_clip(clip, out_dir, config, rejects, models, model_sources)
         except (ValueError, OSError) as err:  # bad files, degenerate rigs: report and go on
             failed.append({"clip": str(clip), "error": str(err)})
             continue
@@ -120,6 +168,21 @@ def label_clips(
         frames += sum(h["frames"] for h in summary["hands"].values())
         seconds += sum(h["seconds"] for h in summary["hands"].values())
     return {"labelled": done, "skipped": skipped, "failed": failed, "hand_frames": frames, "seconds": seconds}
+
+
+def _labelled_with(meta_path: pathlib.Path, wanted: dict[str, str]) -> bool:
+    """True when `meta_path` exists (labels are complete) and records the `wanted` model ids."""
+    if not meta_path.exists():
+        return False
+    try:
+        recorded = json.loads(meta_path.read_text()).get("mano_model")
+    except (OSError, ValueError, AttributeError):
+        return False  # unreadable: label again
+    if recorded is None:  # labels written before models were recorded are of the built-in hand
+        recorded = {side: {"id": _builtin_id(side)} for side in clips.SIDES}
+    if not isinstance(recorded, dict):
+        return False
+    return all(isinstance(r, dict) and r.get("id") == wanted.get(side) for side, r in recorded.items())
 
 
 
@@ -138,12 +201,12 @@ def review_clip(clip_dir: str | pathlib.Path, out_dir: str | pathlib.Path) -> li
     if (clip_dir / "video" / "left.mp4").is_file():
         videos = {view: read_video(clip_dir / "video" / f"{view}.mp4") for view in ("left", "right")}
     sheets = []
-    for side in clip_io.SIDES:
-        path = clip_io.hand_file(out_dir / clip_dir.name, side, "labels")
+    for side in clips.SIDES:
+        path = clips.hand_file(out_dir / clip_dir.name, side, "labels")
         if not path.is_file():
             continue
-        labels = clip_io.load_npz(path, "labels")
-        kp = clip_io.load_npz(clip_io.hand_file(clip_dir, side, "keypoints"), "keypoints")
+        labels = clips.load_npz(path, "labels")
+        kp = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
         fused = fuse(*(jnp.asarray(kp[k]) for k in ("uv", "conf", "box", "box_score")))
         sheet = review_sheet(rig, labels, np.asarray(fused.uv), np.asarray(fused.conf), path.with_name("review.png"), images=videos)
         if sheet is not None:

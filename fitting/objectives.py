@@ -1,17 +1,24 @@
-"""Residual functions of the fitting objectives (appendix A), in the form optimistix
-least-squares solvers take: `residuals(y, args)` with `y` a Module of unknowns.
+"""The fitting objectives of appendix A as one per-frame residual function, in the form
+least-squares solvers take: `frame_residuals(y, (problem, data, track, round))`.
 
 Every robust term is a Huber-transformed residual (`priors.huber_*`), so the sum of
 squares equals the paper's Huber loss. Units are chosen for conditioning: pixels for
-reprojection, centimetres for the translation unknown (offset from its anchor).
+reprojection, centimetres for the translation unknown (an offset from its anchor).
 
-- Stage 1 (`stage1_residuals`): lambda_2d Huber 2D in both views + pose prior +
-  lambda_b |beta - beta_0| + lambda_t |t - t_0| (the soft wrist anchor to the triangulation).
-- Stage 2 (`frame_residuals`): the same with the betas fixed.
-- Motion stage (`frame_residuals` with a `Track`): per frame, Huber 2D + Huber depth
-  anchor lambda_z rho(t_z - z_tri) + one-sided Huber on the wrist's angular speed
-  above omega_max and linear speed above v_max (to both neighbours) + a pull towards
-  the motion prior's smoothed 16-frame-window trajectory (`priors.MotionPrior`).
+One function serves every stage, so the solver compiles once (`Round` holds the traced
+switches that tell the stages apart):
+- shape lock (`Round.free_betas = 1`): lambda_2d Huber 2D in the views that see the
+  hand + pose prior + lambda_b |beta - beta_0| + lambda_t |t - t_0| (the soft wrist
+  anchor to the triangulated wrist);
+- per-frame fits (`free_betas = 0`: the betas are the locked ones): the same terms;
+- motion refit (`Round.motion = 1`, with a `Track`): Huber 2D + the Huber depth anchor
+  lambda_z rho(t_z - z_tri) along the viewing direction + one-sided Huber on the wrist's
+  angular speed above omega_max and linear speed above v_max (to both neighbours) + a
+  pull towards the motion prior's smoothed 16-frame-window trajectory.
+
+A monocular frame has reprojection terms in one view and no wrist anchor (it was not
+triangulated): its depth comes from the locked hand size, the priors and, in the motion
+refit, from its neighbours.
 """
 
 import math
@@ -54,12 +61,14 @@ class FitWeights(eqx.Module):
 
 
 class FrameUnknowns(eqx.Module):
-    """Unknowns of one frame: orientation, pose, wrist offset in cm (and betas in stage 1)."""
+    """Unknowns of one frame: orientation, pose, wrist offset (cm) and a shape offset."""
 
     global_orient: Float[Array, "*batch 3"]
     hand_pose: Float[Array, "*batch 15 3"]
     transl_cm: Float[Array, "*batch 3"]
-    betas: Float[Array, "*batch 10"] | None = None
+    """Wrist offset from `FrameData.anchor`, centimetres."""
+    betas: Float[Array, "*batch 10"]
+    """Shape offset from `Problem.betas`; it acts only while `Round.free_betas` is 1."""
 
 
 class FrameData(eqx.Module):
@@ -68,13 +77,17 @@ class FrameData(eqx.Module):
     uv: Float[Array, "*batch 2 21 2"]
     weight: Float[Array, "*batch 2 21"]
     anchor: Float[Array, "*batch 3"]
-    """Triangulated (or interpolated) wrist, rig frame, metres."""
+    """Initial wrist (triangulated, monocular or interpolated), rig frame, metres."""
     anchor_weight: Float[Array, "*batch"]
-    """1 where the wrist was triangulated in this frame, else 0."""
+    """1 where the wrist was triangulated in this frame, less where it was estimated."""
+    depth_axis: Float[Array, "*batch 3"]
+    """Unit viewing direction from the cameras' midpoint to the anchor (the 'depth' of
+    the depth anchor; the camera z on a parallel rig)."""
 
 
 class Problem(eqx.Module):
-    """What every objective needs besides the unknowns."""
+    """What every objective needs besides the unknowns (all traced: one compiled solver
+    serves every rig of the same camera models, every hand model and every fps)."""
 
     model: mano.ManoModel
     rig: StereoRig
@@ -82,43 +95,19 @@ class Problem(eqx.Module):
     motion_prior: MotionPrior
     weights: FitWeights
     betas: Float[Array, "10"]
-    fps: float
-
-
-def _reprojection(problem: Problem, params: mano.ManoParams, data: FrameData) -> Float[Array, "84"]:
-    joints = mano.forward_joints(problem.model, params, check_finite=False)
-    T = problem.rig.T_left_right
-    # right camera: X_right = R^T (X_left - t)
-    in_right = (joints - T[None, :3, 3]) @ T[:3, :3]
-    uv = jnp.stack([problem.rig.left.project(joints), problem.rig.right.project(in_right)])
-    e = huber_vector(uv - data.uv, problem.weights.huber_px) * jnp.sqrt(data.weight)[..., None]
-    return problem.weights.lambda_2d * e.reshape(84)
-
-
-def _params(y: FrameUnknowns, data: FrameData, betas) -> mano.ManoParams:
-    return mano.ManoParams(y.global_orient, y.hand_pose, betas, data.anchor + 0.01 * y.transl_cm)
-
-
-def stage1_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData]):
-    problem, data = args
-    w = problem.weights
-    return (
-        _reprojection(problem, _params(y, data, y.betas), data),
-        w.lambda_pose * problem.pose_prior(y.hand_pose),
-        w.lambda_betas * y.betas,
-        w.lambda_wrist * data.anchor_weight * y.transl_cm,
-    )
+    """The locked shape (the shape lock's starting shape beta_0 = 0 before it)."""
+    fps: Float[Array, ""]
 
 
 class Track(eqx.Module):
-    """Temporal context of one frame for the motion stage (zero weights in stage 2)."""
+    """Temporal context of one frame for the motion refit (zero weights before it)."""
 
     pose_target: Float[Array, "*batch 16 3"]
     """The windowed motion prior's smoothed rotations of this frame (root first)."""
     transl_target: Float[Array, "*batch 3"]
     """The smoothed wrist position (m)."""
     weight: Float[Array, "*batch"]
-    """Pull towards the smoothed trajectory (0 in stage 2)."""
+    """Pull towards the smoothed trajectory (0 outside the motion refit)."""
     orient_previous: Float[Array, "*batch 3"]
     orient_next: Float[Array, "*batch 3"]
     transl_previous: Float[Array, "*batch 3"]
@@ -132,24 +121,48 @@ class Track(eqx.Module):
         return cls(z(16, 3), z(3), z(), z(3), z(3), z(3), z(3), z(), z())
 
 
-def frame_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData, Track]):
-    """Stage 2 and the motion stage's per-frame refit (one compiled function for both).
+class Round(eqx.Module):
+    """The traced switches of one solver round (shared by all frames)."""
 
-    Huber 2D + pose prior + soft wrist anchor; with a `Track`: the Huber depth anchor,
-    the pull towards the motion prior's smoothed trajectory, and one-sided Huber
-    penalties on the wrist's angular speed above omega_max and linear speed above v_max
-    to both neighbours (angular weighted above linear)."""
-    problem, data, track = args
+    free_betas: Float[Array, ""]
+    """1 in the shape lock (betas are unknowns), 0 afterwards."""
+    pose_scale: Float[Array, ""]
+    """Multiplies lambda_pose (a stiff first phase settles the wrist first)."""
+    motion: Float[Array, ""]
+    """1 in the motion refit: the depth anchor replaces the wrist anchor."""
+
+    @classmethod
+    def make(cls, free_betas: float, pose_scale: float, motion: float, dtype) -> "Round":
+        return cls(*(jnp.asarray(x, dtype) for x in (free_betas, pose_scale, motion)))
+
+
+def frame_params(y: FrameUnknowns, data: FrameData, problem: Problem, round: Round) -> mano.ManoParams:
+    """The MANO parameters (rig frame) the unknowns stand for."""
+    betas = problem.betas + round.free_betas * y.betas
+    return mano.ManoParams(y.global_orient, y.hand_pose, betas, data.anchor + 0.01 * y.transl_cm)
+
+
+def reprojection(problem: Problem, params: mano.ManoParams, data: FrameData) -> Float[Array, "84"]:
+    """lambda_2d * Huber 2D residuals of the 21 joints in both views, weighted by confidence."""
+    joints = mano.forward_joints(problem.model, params, check_finite=False)
+    uv = problem.rig.project(joints)  # (2, 21, 2)
+    e = huber_vector(uv - data.uv, problem.weights.huber_px) * jnp.sqrt(data.weight)[..., None]
+    return problem.weights.lambda_2d * e.reshape(84)
+
+
+def frame_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Array, ...]:
+    """All terms of one frame's objective (see the module docstring)."""
+    problem, data, track, round = args
     w = problem.weights
-    params = _params(y, data, problem.betas)
-    motion = (track.weight > 0).astype(params.transl.dtype)
+    params = frame_params(y, data, problem, round)
     terms = [
-        _reprojection(problem, params, data),
-        w.lambda_pose * problem.pose_prior(y.hand_pose),
-        (1.0 - motion) * w.lambda_wrist * data.anchor_weight * y.transl_cm,
+        reprojection(problem, params, data),
+        round.pose_scale * w.lambda_pose * problem.pose_prior(y.hand_pose),
+        w.lambda_betas * y.betas,
+        (1.0 - round.motion) * w.lambda_wrist * data.anchor_weight * y.transl_cm,
     ]
-    dz_cm = (params.transl[2] - data.anchor[2]) * 100.0
-    terms.append(motion * w.lambda_depth * data.anchor_weight * huber_residual(dz_cm, w.depth_huber_cm)[None])
+    dz_cm = jnp.dot(params.transl - data.anchor, data.depth_axis) * 100.0
+    terms.append(round.motion * w.lambda_depth * data.anchor_weight * huber_residual(dz_cm, w.depth_huber_cm)[None])
     pose = jnp.concatenate([y.global_orient[None], y.hand_pose])
     terms.append(jnp.sqrt(track.weight) * (pose - track.pose_target).reshape(48))
     terms.append(jnp.sqrt(track.weight) * 100.0 * (params.transl - track.transl_target))

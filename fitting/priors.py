@@ -57,7 +57,7 @@ class PosePrior(eqx.Module):
         comps = model.hands_components
         whitening = jnp.linalg.inv(comps.T)
         b = jnp.zeros(model.num_betas, comps.dtype) if betas is None else betas
-        rest = mano.forward(model, mano.ManoParams(jnp.zeros(3), jnp.zeros((15, 3)), b, jnp.zeros(3)))
+        rest = mano.forward(model, mano.ManoParams(jnp.zeros(3), jnp.zeros((15, 3)), b, jnp.zeros(3)), check_finite=False)
         tips = rest.vertices[model.fingertip_ids]
         frames = mano.anatomical_frames(rest.transforms[:, :3, 3], tips, model.is_right)
         limits = jnp.asarray(mano.JOINT_LIMITS, comps.dtype)

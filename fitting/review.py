@@ -14,18 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from esther_jax.cameras import StereoRig
-
-from .initialise import KEYPOINT_PARENTS
+from esther_jax.mano import KEYPOINT_PARENTS
 
 _FINGER_COLOURS = [(255, 255, 255)] + [(230, 80, 80)] * 4 + [(240, 200, 60)] * 4 + [(80, 200, 90)] * 4 + [(70, 150, 240)] * 4 + [(200, 90, 220)] * 4
 
 
 def project_views(rig: StereoRig, points_rig: np.ndarray) -> np.ndarray:
-    """(2, N, 2) pixels of rig-frame points in the left and right views."""
-    T = np.asarray(rig.T_left_right, np.float64)
-    in_right = (points_rig - T[:3, 3]) @ T[:3, :3]
-    dtype = jnp.result_type(float)
-    return np.stack([np.asarray(rig.left.project(jnp.asarray(points_rig, dtype))), np.asarray(rig.right.project(jnp.asarray(in_right, dtype)))])
+    """(2, N, 2) pixels of rig-frame points in the left and right views (numpy in and out)."""
+    return np.asarray(rig.project(jnp.asarray(points_rig, rig.T_left_right.dtype)), np.float64)
 
 
 def draw_skeleton(image: np.ndarray, uv: np.ndarray, thickness: int = 2) -> np.ndarray:

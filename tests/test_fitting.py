@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cameras, cli, mano, metrics
-from esther_jax.data import clip_io, motion, synth
-from fitting import fusion, initialise, label_clips, label_hand, quality
+from esther_jax import cameras, cli, clips, mano, metrics
+from esther_jax.data import motion, synth
+from fitting import LabelConfig, evidence, fusion, label_clips, label_hand, quality
 from fitting.priors import MotionPrior, PosePrior, huber_residual
 
 FRAMES = 32  # one length bucket: the solvers compile once for the whole module
@@ -53,7 +53,7 @@ def test_prefilter_rejects_implausible_depths_and_isolated_bones():
     far[:, 2] += 1.0  # the whole hand beyond 1 m
     uv = np.stack([motion_uv(rig, joints), motion_uv(rig, far)])  # (2 frames, 2, 21, 2)
     fused = fusion.Fused(uv=jnp.asarray(uv, jnp.float32), conf=jnp.ones((2, 2, 21)), box_side=jnp.full((2, 2), 200.0), num_invalid=jnp.zeros(()))
-    ev = initialise.prefilter(rig, fused, initialise.template_bones(model))
+    ev = evidence.prefilter(rig, fused, evidence.template_bones(model))
     w = np.asarray(ev.weight)
     assert w[0, :, 8].sum() == 0 and w[0, :, 7].sum() > 0 and w[0, :, 0].sum() > 0
     assert w[1].sum() == 0
@@ -76,8 +76,8 @@ def test_initialisation_recovers_the_wrist_and_orientation_without_flips():
         joints = np.asarray(mano.forward_joints(model, params), np.float64)
         uv = motion_uv(rig, joints)[None]
         fused = fusion.Fused(uv=jnp.asarray(uv, jnp.float32), conf=jnp.ones((1, 2, 21)), box_side=jnp.full((1, 2), 200.0), num_invalid=jnp.zeros(()))
-        ev = initialise.prefilter(rig, fused, initialise.template_bones(model))
-        init = initialise.initialise(model, ev, jnp.zeros(10))
+        ev = evidence.prefilter(rig, fused, evidence.template_bones(model))
+        init = evidence.initialise(model, rig, ev, jnp.zeros(10))
         np.testing.assert_allclose(np.asarray(init.transl[0]), np.asarray(params.transl), atol=2e-3)
         from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
 
@@ -100,16 +100,53 @@ def test_priors_are_residual_callables():
     np.testing.assert_allclose(float(huber_residual(jnp.asarray(3.0), 1.0)) ** 2 / 2, 1.0 * (3.0 - 0.5), rtol=1e-6)
 
 
-def test_quality_table_formulas():
+def test_depth_per_disparity_is_z2_over_fb_on_a_parallel_rig():
+    """Appendix N's z^2 / (f b) is the parallel pinhole case of the general geometry,
+    for every point, not only on the optical axis."""
     rig = cameras.rig_preset("esther")
-    r = np.full(10, 5.0)
-    z = np.full(10, 0.4)
-    q = quality.quality_table(r, z, np.ones(10, bool), rig)
-    f, b = 623.0, 0.062
-    assert q["table"]["in_plane_error_mm"]["median"] == pytest.approx(5.0 * 0.4 / f * 1000)
-    assert q["table"]["admissible_depth_error_independent_mm"]["median"] == pytest.approx(np.sqrt(2) * 5.0 * 0.16 / (f * b) * 1000)
-    assert q["table"]["admissible_depth_error_worst_mm"]["median"] == pytest.approx(2 * 5.0 * 0.16 / (f * b) * 1000)
-    assert q["share_passing"] == 1.0
+    rng = np.random.default_rng(0)
+    X = jnp.asarray(rng.uniform([-0.3, -0.2, 0.2], [0.3, 0.2, 0.9], size=(50, 3)), jnp.float32)
+    got = np.asarray(jax.vmap(quality.depth_per_disparity, in_axes=(None, 0))(rig, X))
+    z = np.asarray(X[:, 2], np.float64)
+    expected = z**2 / (623.0 * 0.062)
+    np.testing.assert_allclose(got[:, 0], expected, rtol=1e-4)
+    np.testing.assert_allclose(got[:, 1], expected, rtol=1e-4)
+    on_axis = jnp.asarray([[0.0, 0.0, 0.4]], jnp.float32)
+    np.testing.assert_allclose(np.asarray(jax.vmap(quality.metres_per_pixel, in_axes=(None, 0))(rig, on_axis))[0, 0], 0.4 / 623.0, rtol=1e-5)
+
+
+def test_quality_table_reports_stereo_and_monocular_frames():
+    rig = cameras.rig_preset("hot3d_aria")
+    wrist = jnp.tile(jnp.asarray([0.05, 0.1, 0.35], jnp.float32), (10, 1))
+    residual = jnp.full(10, 5.0, jnp.float32)
+    seen = jnp.asarray([[True, True]] * 6 + [[False, True]] * 4)
+    per_frame = jax.device_get(quality.frame_quality(rig, wrist, residual, seen, jnp.asarray(0.18, jnp.float32)))
+    # the divergent rig's geometry: depth along the observing cameras' axes, not the rig frame's z
+    assert abs(per_frame["hand_depth_m"][0] - np.asarray(rig.depths(wrist[0])).mean()) < 1e-6
+    assert np.all(np.isfinite(per_frame["admissible_depth_error_independent_mm"]))
+    np.testing.assert_allclose(per_frame["admissible_depth_error_worst_mm"], np.sqrt(2.0) * per_frame["admissible_depth_error_independent_mm"], rtol=1e-5)
+    stereo = np.asarray(jnp.all(seen, axis=1))
+    q = quality.label_quality(per_frame, np.ones(10, bool), stereo, np.ones(10, bool))
+    assert q["stereo"]["hand_frames"] == 6 and q["monocular"]["hand_frames"] == 4 and q["all"]["share_passing"] == 1.0
+    assert q["monocular"]["table"]["reprojection_residual_px"]["median"] == 5.0
+    json.dumps(q, allow_nan=False)  # strict JSON
+
+
+def test_fusion_with_one_and_three_detectors():
+    a, far = np.array([10.0, 10.0]), np.array([40.0, 10.0])
+    uv, conf, box, score = (x[:1] for x in _detections(a, 0.9, far, 0.6))
+    f = fusion.fuse(uv, conf.at[0, 0, 0, 2].set(0.2), box, score)  # D = 1: its joints above tau
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), a)
+    assert float(f.conf[0, 0, 2]) == 0.0 and float(f.conf[0, 0, 0]) == pytest.approx(0.9)
+    b = np.array([14.0, 10.0])  # D = 3: two agree, one outlier; the outlier is ignored
+    uv2, conf2, box2, score2 = _detections(a, 0.9, b, 0.6)
+    uv3 = jnp.concatenate([uv2, jnp.broadcast_to(jnp.asarray(far, jnp.float32), uv2[:1].shape)])
+    conf3 = jnp.concatenate([conf2, conf2[:1] * 0 + 0.8])
+    f = fusion.fuse(uv3, conf3, jnp.concatenate([box2, box2[:1]]), jnp.concatenate([score2, score2[:1]]))
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 0]), (0.9 * a + 0.6 * b) / 1.5, rtol=1e-6)
+    # with two detectors the general rule is appendix A's case analysis
+    f2 = fusion.fuse(uv2, conf2, box2, score2)
+    np.testing.assert_allclose(np.asarray(f2.uv), np.asarray(fusion.fuse(uv3[:2], conf3[:2], box2, score2).uv))
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +166,56 @@ def test_labels_match_the_ground_truth(clean_two_hands):
         pred, true = jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])
         assert np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))[ok].mean() < 0.008
         assert np.asarray(jax.vmap(metrics.wrist_error)(pred, true))[ok].mean() < 0.01
-        assert report["share_passing"] > 0.7 and report["table"]["reprojection_residual_px"]["median"] < 12.0
+        assert report["share_passing"] > 0.7 and report["all"]["table"]["reprojection_residual_px"]["median"] < 12.0
+
+
+def _scores(labels, gt):
+    ok = labels["valid"] & gt["onscreen"]
+    pred, true = jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])
+    p = np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))
+    w = np.asarray(jax.vmap(metrics.wrist_error)(pred, true))
+    return ok, p, w
+
+
+@pytest.mark.slow
+def test_one_and_three_detectors_label(clean_two_hands):
+    """D = 1 (a single real detector) and D = 3 clips label; the solver does not recompile."""
+    clip = clean_two_hands
+    kp = clip.keypoints["right"]
+    one = {k: v[:1] for k, v in kp.items()}
+    rng = np.random.default_rng(1)
+    three = {k: np.concatenate([v, v[:1]]) for k, v in kp.items()}
+    three["uv"][2] += rng.normal(scale=1.0, size=three["uv"][2].shape)
+    for keypoints in (one, three):
+        labels, _ = label_hand(mano.load_builtin("right"), clip.rig, keypoints, 30.0)
+        ok, p, w = _scores(labels, clip.gt["right"])
+        assert ok.sum() >= 0.7 * clip.gt["right"]["onscreen"].sum()
+        assert p[ok].mean() < 0.010 and w[ok].mean() < 0.012
+
+
+@pytest.mark.slow
+def test_monocular_frames_on_a_divergent_rig():
+    """On the Aria rig (75 degrees apart) most frames see a hand in one camera: they are
+    labelled as monocular frames (depth from the locked hand size and the neighbours), and
+    a clip whose frames are all monocular still gets labels, its shape flagged."""
+    cfg = synth.SynthConfig(num_frames=FRAMES, rig="hot3d_aria", detector_preset="easy", motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    clip = synth.make_clip(11, 2, cfg)
+    seen_mono = 0
+    for side in clip.keypoints:
+        labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0)
+        gt = clip.gt[side]
+        ok, p, w = _scores(labels, gt)
+        mono = ok & ~labels["stereo"]
+        seen_mono += mono.sum()
+        assert ok.sum() >= 0.7 * gt["onscreen"].sum()
+        assert np.median(p[ok]) < 0.015 and np.median(w[ok]) < 0.03
+        assert report["monocular"]["hand_frames"] == int((labels["onscreen"] & ~labels["stereo"]).sum())
+    assert seen_mono > 0
+    kp = {k: v.copy() for k, v in clip.keypoints["left"].items()}
+    kp["conf"][:, :, 0] = 0.0  # the left camera never sees this hand
+    labels, report = label_hand(mano.load_builtin("left"), clip.rig, kp, 30.0)
+    assert report["shape_from_monocular"] and not labels["stereo"].any() and labels["valid"].any()
+    assert any("shape was locked from monocular" in n for n in report["notes"])
 
 
 @pytest.mark.slow
@@ -143,11 +229,14 @@ def test_bad_inputs_are_labelled_flagged_or_reported(clean_two_hands, tmp_path):
     labels, report = label_hand(model, clip.rig, kp, 30.0)
     assert np.all(np.isfinite(labels["joints"]))
     assert any("NaN" in n for n in report["notes"]) and any("one view" in n for n in report["notes"])
-    assert not labels["stereo"][10:18].any() and not labels["valid"][10:18].any() and labels["onscreen"][10:18].all()
+    # frames seen by one view are labelled as monocular frames, not dropped
+    assert not labels["stereo"][10:18].any() and labels["onscreen"][10:18].all() and labels["valid"][10:18].sum() >= 6
+    assert report["monocular"]["hand_frames"] == 8 and report["stereo"]["hand_frames"] == int(labels["stereo"].sum())
+    json.dumps(report, allow_nan=False, default=float)
     never = {k: v.copy() for k, v in clip.keypoints[side].items()}
     never["conf"][:] = 0.0
     labels, report = label_hand(model, clip.rig, never, 30.0)
-    assert not labels["valid"].any() and "never detected" in report["notes"][0]
+    assert not labels["valid"].any() and "never detected" in report["notes"][-1]
     short = {k: v[:, :10] for k, v in clip.keypoints[side].items()}  # fewer frames than a window
     labels, _ = label_hand(model, clip.rig, short, 30.0)
     assert labels["joints"].shape == (10, 21, 3) and labels["valid"].sum() >= 5
@@ -162,7 +251,7 @@ def test_bad_inputs_are_labelled_flagged_or_reported(clean_two_hands, tmp_path):
     del rig["cameras"]["right"]
     (missing / "rig.json").write_text(json.dumps(rig))
     truncated = synth.write_clip(clip, tmp_path / "clips" / "truncated")
-    path = clip_io.hand_file(truncated, "left", "keypoints")
+    path = clips.hand_file(truncated, "left", "keypoints")
     path.write_bytes(path.read_bytes()[:200])
     result = label_clips([good, zero, missing, truncated], tmp_path / "labels", progress=False)
     errors = {f["clip"].split("/")[-1]: f["error"] for f in result["failed"]}
@@ -177,7 +266,7 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
     out = tmp_path / "labels"
     (tmp_path / "reject.txt").write_text("# reviewer's list\nc0,right,3\nc0,left,4\n")
     assert cli.main(["label", str(tmp_path / "clips"), "--out", str(out), "--reject", str(tmp_path / "reject.txt"), "--review"]) == 0
-    labels = clip_io.load_npz(clip_io.hand_file(out / "c0", "right", "labels"), "labels")
+    labels = clips.load_npz(clips.hand_file(out / "c0", "right", "labels"), "labels")
     assert not labels["valid"][3]
     q = json.loads((out / "c0" / "hands" / "right" / "quality.json").read_text())
     assert q["human_rejected_frames"] == [3]
@@ -207,7 +296,7 @@ def test_monocular_estimates_initialise_the_fit(clean_two_hands):
     pose = np.stack([gt["hand_pose"]] * 2, axis=1) + rng.normal(scale=0.1, size=(FRAMES, 2, 15, 3))
     transl = np.stack([gt["transl"], (gt["transl"] - T_lr[:3, 3]) @ T_lr[:3, :3]], axis=1)
     monocular = {"global_orient": orient, "hand_pose": pose, "transl": transl, "valid": np.ones((FRAMES, 2), bool)}
-    from fitting.initialise import monocular_average
+    from fitting.evidence import monocular_average
 
     avg_orient, avg_pose, has = monocular_average(clip.rig, monocular)
     assert has.all()

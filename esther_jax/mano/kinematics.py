@@ -138,8 +138,10 @@ def _keypoints(posed: PosedHand, tips: Float[Array, "5 3"]) -> Float[Array, "21 
     return jnp.concatenate([posed.translations, tips], axis=0)[jnp.asarray(KEYPOINT_FROM_MANO)]
 
 
-def _check_params(model: ManoModel, params: ManoParams) -> ManoParams:
-    """Trace-time shape checks and a run-time finiteness check (eqx.error_if)."""
+def _check_params(model: ManoModel, params: ManoParams, check_finite: bool) -> ManoParams:
+    """Trace-time shape checks and, if asked, a run-time finiteness check (`eqx.error_if`,
+    a host callback: compiled programs that contain one are not stored in the persistent
+    compilation cache, so solvers validate at their edge and pass `check_finite=False`)."""
     expected = {"global_orient": (3,), "hand_pose": (15, 3), "transl": (3,)}
     for name, shape in expected.items():
         got = getattr(params, name).shape
@@ -150,20 +152,23 @@ def _check_params(model: ManoModel, params: ManoParams) -> ManoParams:
             )
     if params.betas.ndim != 1 or params.betas.shape[0] > model.num_betas:
         raise ValueError(f"ManoParams.betas has shape {params.betas.shape}, expected (k,) with k <= {model.num_betas}")
+    if not check_finite:
+        return params
     finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(params)]))
     return eqx.error_if(params, ~finite, "ManoParams contains NaN or infinite values")
 
 
-def forward(model: ManoModel, params: ManoParams) -> ManoOutput:
+def forward(model: ManoModel, params: ManoParams, *, check_finite: bool = True) -> ManoOutput:
     """Posed vertices, the 21 keypoints and the 16 joint frames of one hand.
 
     Args:
         model: a MANO-format model (`load_builtin`, `load_mano_pkl`).
         params: one hand; `transl` is the wrist position in the output frame.
+        check_finite: raise on NaN / infinite parameters (see `forward_joints`).
     Returns:
         `ManoOutput` with vertices (V, 3), joints (21, 3), transforms (16, 4, 4), metres.
     """
-    params = _check_params(model, params)
+    params = _check_params(model, params, check_finite)
     shaped = with_shape(model, params.betas)
     return _posed_output(model, shaped, with_pose(model, shaped, params))
 
@@ -194,8 +199,7 @@ def forward_joints(model: ManoModel, params: ManoParams, *, check_finite: bool =
     `check_finite=False` skips the run-time NaN check, for solvers whose inputs were
     validated once at their edge.
     """
-    checked = _check_params(model, params)
-    params = checked if check_finite else params
+    params = _check_params(model, params, check_finite)
     shaped = with_shape(model, params.betas)
     posed = with_pose(model, shaped, params)
     ids = model.fingertip_ids
