@@ -227,11 +227,11 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
         "betas": np.asarray(out["betas"], np.float32),
         "transl": np.asarray(fits.transl[sl], np.float32),
         "joints": np.asarray(out["joints"][sl], np.float32),
-        "onscreen": observed,
-        "valid": out["passing"][sl],
+        "onscreen": np.array(observed),
+        "valid": np.array(out["passing"][sl]),
         "residual_px": np.asarray(out["residual"][sl], np.float32),  # NaN where the hand is not observed
-        "stereo": stereo,
-        "converged": np.asarray(fits.converged[sl]),
+        "stereo": np.array(stereo),
+        "converged": np.array(fits.converged[sl]),
     }
     per_frame = {k: np.asarray(v[sl]) for k, v in out["per_frame"].items()}
     report = quality.label_quality(per_frame, observed, stereo, labels["valid"])
