@@ -259,17 +259,21 @@ def pooled(hands: list[dict], group: str) -> dict:
             "p_mpjpe": mean("p_mpjpe"), "pa_mpjpe": mean("pa_mpjpe"), "wrist": mean("wrist")}  # fmt: skip
 
 
-def label_clips(rig: str, clips: int, frames: int, config: fitting.LabelConfig, seed: int = 1000) -> dict:
-    """Label both hands of `clips` clips; the first call is timed apart (compilation)."""
+def label_clips(rig: str, clips: int, frames: int, config: fitting.LabelConfig, seed: int = 1000, log: CompileLog | None = None) -> dict:
+    """Label both hands of `clips` clips; the first call is timed apart (compilation),
+    and `log`, if given, summarises the compilations of that call."""
     cfg = synth.SynthConfig(num_frames=frames, rig=rig, motion_config=MOTION)
     hands, calls, stages = [], [], {}
     for i in range(clips):
         clip = synth.make_clip(seed, i, cfg)
         for side in sorted(clip.keypoints):
             model = mano.load_builtin(side)
+            mark = log.mark() if log is not None and not calls else None
             t0 = time.perf_counter()
             labels, report = fitting.label_hand(model, clip.rig, clip.keypoints[side], clip.meta["fps"], config)
             calls.append((frames, time.perf_counter() - t0))
+            if mark is not None:
+                first = log.summary(mark)
             if len(calls) > 1:
                 for k, v in report["timings"].items():
                     stages[k] = stages.get(k, 0.0) + v
@@ -277,7 +281,7 @@ def label_clips(rig: str, clips: int, frames: int, config: fitting.LabelConfig, 
     timed = calls[1:]
     hand_frames = sum(c[0] for c in timed)
     seconds = sum(c[1] for c in timed)
-    return {"hands": hands, "first_s": calls[0][1], "throughput": hand_frames / seconds if seconds else float("nan"),
+    return {"hands": hands, "first_s": calls[0][1], "first": first if log is not None else None, "throughput": hand_frames / seconds if seconds else float("nan"),
             "per_hand_s": seconds / len(timed) if timed else float("nan"), "stages": {k: v / max(len(timed), 1) for k, v in stages.items()}}  # fmt: skip
 
 
@@ -314,20 +318,19 @@ def sweep_section(clips: int, frames: int):
 # ----------------------------------------------------------------------------- solvers
 
 
-def solvers_section(clips: int, frames: int):
+def solvers_section(clips: int, frames: int, solvers: tuple[str, ...] = fitting.SOLVERS):
     print(f"\n== 3. solvers on the esther rig: {clips} clips x {frames} frames, both hands; persistent cache off, caches cleared per solver ==")
     jax.config.update("jax_enable_compilation_cache", False)
     log = CompileLog()
     print(f"{'solver':<11}{'first call':>11}{'trace+lower':>12}{'compile':>9}{'solver compile':>16}{'per hand':>10}{'hand-frames/s':>15}{'P-MPJPE':>9}{'PA-MPJPE':>10}{'wrist':>8}{'coverage':>10}")
-    for name in fitting.SOLVERS:
+    for name in solvers:
         jax.clear_caches()
-        mark = log.mark()
         try:
-            r = label_clips("esther", clips, frames, fitting.LabelConfig(solver=name))
+            r = label_clips("esther", clips, frames, fitting.LabelConfig(solver=name), log=log)
         except Exception as err:  # noqa: BLE001 - a failing backend is a result, not a crash
             print(f"{name:<11}failed: {type(err).__name__}: {str(err).splitlines()[0][:160] if str(err) else ''}")
             continue
-        s = log.summary(mark)  # all hands; the first call holds the compilations
+        s = r["first"]
         g = pooled(r["hands"], "all")
         print(f"{name:<11}{r['first_s']:>10.1f}s{s['trace_s'] + s['lower_s']:>11.1f}s{s['compiled_s']:>8.1f}s{s['solver_compiled_s']:>15.1f}s{r['per_hand_s']:>9.2f}s"
               f"{num(r['throughput'], 15, '.0f')}{num(g['p_mpjpe'], 9)}{num(g['pa_mpjpe'], 10)}{num(g['wrist'], 8)}{num(g['coverage'], 10, '.1%')}")  # fmt: skip
@@ -343,11 +346,13 @@ def main():
     parser.add_argument("--clips", type=int, default=4)
     parser.add_argument("--frames", type=int, default=64)
     parser.add_argument("--section", choices=("compile", "sweep", "solvers", "all"), default="all")
+    parser.add_argument("--solvers", nargs="+", choices=fitting.SOLVERS, default=fitting.SOLVERS, help="section 3's solvers")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 clip of 32 frames, section 1 only when asked for")
     parser.add_argument("--child", choices=("cold", "warm"), help=argparse.SUPPRESS)
     parser.add_argument("--rig", default="esther", help=argparse.SUPPRESS)
     parser.add_argument("--cache", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    sys.stdout.reconfigure(line_buffering=True)  # partial results survive a crash or a kill
     if args.child:
         print("RESULT " + json.dumps(child(args.child, args.rig, args.cache, args.frames)), flush=True)
         return
@@ -359,7 +364,7 @@ def main():
     if args.section in ("sweep", "all"):
         sweep_section(args.clips, args.frames)
     if args.section in ("solvers", "all"):
-        solvers_section(args.clips, args.frames)
+        solvers_section(args.clips, args.frames, tuple(args.solvers))
     if TARGETS:
         print("\nsummary:")
         for what, text, _ in TARGETS:
