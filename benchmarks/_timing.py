@@ -33,7 +33,7 @@ def median_seconds(fn: Callable, *args, min_time: float = 0.2, rounds: int = 5) 
 
 def interleaved(candidates: dict[str, Callable[[], object]], rounds: int = 5, min_time: float = 0.2) -> dict[str, float]:
     """Median seconds per call of several zero-argument callables, timed round robin so
-    that machine noise hits all of them alike (the peers' timings in reference/performance.md
+    that machine noise hits all of them alike (peers' timings
     were taken the same way)."""
     reps = {}
     for name, fn in candidates.items():

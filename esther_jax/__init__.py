@@ -1,6 +1,6 @@
 """esther_jax: the JAX core of ESTHER (rotations, MANO, cameras, triangulation, metrics).
 
-Shapes and conventions: ARCHITECTURE.md. Functions take one example; batch with `jax.vmap`.
+Shapes and conventions: docs/architecture.md. Functions take one example; batch with `jax.vmap`.
 """
 
 from .compilation import enable_compilation_cache as enable_compilation_cache

@@ -2,7 +2,7 @@
 
 Every singular point (norm of a zero vector, division by a vanishing depth) is
 guarded with the "double where": the unused branch is fed a harmless input so that
-reverse-mode gradients stay finite (see STYLE.md, brentyi/jaxlie `SO3.log`).
+reverse-mode gradients stay finite (as brentyi/jaxlie's `SO3.log`).
 """
 
 import jax
@@ -38,7 +38,7 @@ def cross(a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"]) -> Float[Arr
 def matmul3(a: Float[Array, "*batch 3 3"], b: Float[Array, "*batch 3 k"]) -> Float[Array, "*batch 3 k"]:
     """`a @ b` for 3x3 blocks as broadcast multiply-adds.
 
-    Tiny batched `dot_general`s are slow on XLA:CPU (reference/performance.md: a 3x3
+    Tiny batched `dot_general`s are slow on XLA:CPU (a 3x3
     apply as einsum ran 16x slower than unrolled FMAs); elementwise products fuse.
     """
     return (

@@ -1,6 +1,6 @@
 """Camera models (pinhole, Fisheye624), stereo rigs, rig presets and `rig.json` I/O.
 
-Conventions (ARCHITECTURE.md): OpenCV camera frame (x right, y down, z forward),
+Conventions (docs/architecture.md): OpenCV camera frame (x right, y down, z forward),
 pixel centres at integer coordinates (the pixel (i, j) covers [i-0.5, i+0.5] x
 [j-0.5, j+0.5]), so the image spans -0.5 <= u < W - 0.5. Scaling an image by s maps
 u -> s (u + 0.5) - 0.5; cropping at integer offset (x0, y0) maps u -> u - x0.
@@ -306,7 +306,7 @@ class Fisheye624Camera(AbstractCamera):
 def apply_transform(T: Float[Array, "*#batch 4 4"], X: Float[Array, "*#batch 3"]) -> Float[Array, "*#batch 3"]:
     """Apply a rigid (or any affine) 4x4 transform to points: `R X + t`.
 
-    Frames follow ARCHITECTURE.md: `X_a = apply_transform(T_a_b, X_b)` takes points from
+    Frames follow docs/architecture.md: `X_a = apply_transform(T_a_b, X_b)` takes points from
     frame b to frame a. Leading axes broadcast (NumPy rules, also across ranks), so one
     `T` of shape (4, 4) applies to points of any batch shape, and a stack of transforms
     applies to a matching stack of points. Units follow the inputs (metres here).
@@ -411,7 +411,7 @@ class StereoRig(eqx.Module):
 
     @classmethod
     def from_json(cls, path: str | pathlib.Path) -> "StereoRig":
-        """Read `rig.json` (ARCHITECTURE.md, "File formats"), validating it."""
+        """Read `rig.json` (docs/architecture.md, "File formats"), validating it."""
         return cls.from_dict(read_json(path), source=str(path))
 
     @classmethod

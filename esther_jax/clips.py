@@ -1,4 +1,4 @@
-"""Reading and writing clip folders (ARCHITECTURE.md, "File formats").
+"""Reading and writing clip folders (docs/architecture.md, "File formats").
 
     clip/
       rig.json, meta.json

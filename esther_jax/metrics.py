@@ -2,7 +2,7 @@
 and the depth-scatter decomposition (paper section 5 and appendices J, L).
 
 Every function names its variant. Inputs are metres (joints in the 21-keypoint order of
-ARCHITECTURE.md) and results are metres (or m/s^2 for jitter); per-frame functions take
+docs/architecture.md) and results are metres (or m/s^2 for jitter); per-frame functions take
 one frame and vmap over sequences; optional masks mark valid joints or frames.
 
 - `mpjpe`: absolute mean per-joint position error in the camera/rig frame, no alignment.

@@ -1,6 +1,6 @@
 """Rotation representations and conversions, exact and differentiable at 0 and pi.
 
-Conventions (one place, ARCHITECTURE.md):
+Conventions (one place, docs/architecture.md):
 - Rotation matrices act on column vectors, `x' = R @ x`.
 - Axis-angle is the rotation vector: unit axis times angle (radians).
 - Quaternions are scalar-first `(w, x, y, z)` (as jaxlie and Project Aria); the ones

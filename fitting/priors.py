@@ -29,7 +29,7 @@ from esther_jax import mano
 
 
 def huber_residual(r: Array, delta: float | Array) -> Array:
-    """s with 0.5 * s**2 == huber(r); s == r when |r| <= delta (STYLE.md)."""
+    """s with 0.5 * s**2 == huber(r); s == r when |r| <= delta."""
     a = jnp.maximum(jnp.abs(r), delta)
     return r * jnp.sqrt(delta * (2.0 * a - delta)) / a
 

@@ -16,7 +16,7 @@ y down, z forward), then expressed in the rig frame of every frame:
   interpolation in anatomical angles and clipped to the joint limits.
 - *Shape*: betas ~ N(0, I), one per clip (both hands belong to one person).
 
-Left hands are sampled as right hands and mirrored (ARCHITECTURE.md), then posed with
+Left hands are sampled as right hands and mirrored (docs/architecture.md), then posed with
 the left model. Ground truth per frame and hand: MANO parameters in the rig frame,
 21 joints, vertices on request, per-view per-joint visibility (inside the image and not
 hidden by the hand itself, the other hand or the held object, by a depth test) and the

@@ -1,5 +1,5 @@
 """The synthetic egocentric stereo clip engine: motion -> detections -> (rendering, crops,
-flow tokens) -> clip folders (ARCHITECTURE.md format), deterministic from a seed.
+flow tokens) -> clip folders (docs/architecture.md format), deterministic from a seed.
 
 `esther synth --out DIR --clips N --frames T --rig esther [--render] [--detector-preset default] [--seed S]`
 writes `DIR/clip_00000/ ...`. Each clip depends only on (seed, clip index), is built in

@@ -1,4 +1,4 @@
-"""Joint orders and index maps of MANO (one place; ARCHITECTURE.md, "Conventions").
+"""Joint orders and index maps of MANO (one place; docs/architecture.md, "Conventions").
 
 MANO joints (16, MANO order): 0 wrist; 1-3 index; 4-6 middle; 7-9 pinky;
 10-12 ring; 13-15 thumb. Keypoints (21, MediaPipe/OpenPose/FreiHAND order):

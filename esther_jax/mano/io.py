@@ -1,7 +1,7 @@
 """Loading and saving MANO-format models: the built-in open hand and users' own files.
 
 One loader per source; each converts dtypes and validates everything, so the
-jitted kinematics trust the arrays (STYLE.md, "Validate once, at the edge").
+jitted kinematics trust the arrays.
 The official `MANO_RIGHT.pkl` / `MANO_LEFT.pkl` are licensed: we never ship or
 download them; `load_mano_pkl` reads a file the user owns, without chumpy.
 """
@@ -22,7 +22,7 @@ from .model import ManoModel
 _log = logging.getLogger(__name__)
 _BUILTIN = pathlib.Path(__file__).with_name("assets") / "builtin_right.npz"
 MIRROR = np.array([-1.0, 1.0, 1.0])
-"""The left/right mirror of ARCHITECTURE.md: x -> -x in the model (or rig) frame."""
+"""The left/right mirror of docs/architecture.md: x -> -x in the model (or rig) frame."""
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 

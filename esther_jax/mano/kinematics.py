@@ -7,7 +7,7 @@ vertices. `forward_joints` skins only the five fingertip vertices and is exact
 against `forward` (same blend shapes, same transforms).
 
 All 3x3 products are broadcast multiply-adds (`_math.matmul3`): tiny batched
-`dot_general`s are slow on XLA:CPU (reference/performance.md).
+`dot_general`s are slow on XLA:CPU.
 """
 
 import equinox as eqx

@@ -2,7 +2,7 @@
 
 `ManoModel` holds the arrays of a MANO-format model (our built-in open hand, or a
 user's official file) and is data, not weights: pass it beside a network or fit.
-`ManoParams` is one hand in one frame. Conventions: ARCHITECTURE.md.
+`ManoParams` is one hand in one frame. Conventions: docs/architecture.md.
 """
 
 import hashlib
@@ -187,7 +187,7 @@ def model_id(model: ManoModel) -> str:
 
 
 class ManoParams(eqx.Module):
-    """One hand: pose, shape and metric wrist (ARCHITECTURE.md, "ManoParams").
+    """One hand: pose, shape and metric wrist (docs/architecture.md, "ManoParams").
 
     Leading batch axes are allowed (e.g. a (T,) sequence); the kinematics take one
     hand, so `jax.vmap` over them.
