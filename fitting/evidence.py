@@ -38,16 +38,18 @@ from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from esther_jax.triangulation import triangulate_batch
 
 from .fusion import Fused
+from .priors import huber_vector
+from .solve import levenberg_marquardt
 
 DEPTH_RANGE_M = (0.1, 1.0)
 BONE_TOLERANCE = 0.4
 MEDIAN_HALF_WINDOW = 3
-"""Monocular wrist estimates are median-filtered over +-3 frames (outlying keypoints)."""
-MAX_INTERPOLATED_GAP = 8
-"""Frames at most this far from a triangulated wrist interpolate (or hold) it rather than
-estimate it from the hand's size (more reliable over a quarter of a second)."""
-PALM_EDGES = ((0, 5), (0, 9), (0, 13), (0, 17), (5, 17), (1, 5))
-"""Keypoint pairs rigid with the wrist whose template lengths give a monocular distance."""
+"""Wrists from the palm's pose are median-filtered over +-3 frames (outlying keypoints)."""
+MIN_PALM_POINTS = 4
+"""A palm pose needs at least 4 of the 6 palm keypoints (8 constraints for 6 unknowns)."""
+MAX_PALM_RESIDUAL_RAD = 0.05
+"""A palm pose whose rms ray angle exceeds this (about 12 px at 241 px focal length) is
+not trusted: the keypoints do not look like a palm."""
 
 
 class Evidence(eqx.Module):
@@ -173,47 +175,106 @@ def _egocentric_default(is_right: Bool[Array, ""], dtype) -> Float[Array, "3 3"]
     return M @ R @ M
 
 
-def monocular_wrist(
-    rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"], rest: Float[Array, "21 3"]
-) -> tuple[Float[Array, "3"], Float[Array, "21 3"], Bool[Array, ""]]:
-    """Wrist and lifted palm of one frame from one view and the hand's known size.
+def _cube_rotations() -> np.ndarray:
+    """The 24 proper rotations of the cube (signed permutation matrices with det +1):
+    starting orientations of the palm's pose that are at most 62.8 degrees from any rotation."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            R = np.zeros((3, 3))
+            R[np.arange(3), perm] = np.where(np.asarray(signs) == 1, -1.0, 1.0)
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.stack(out)
 
-    In the view with the most observed palm keypoints, the wrist lies on its ray at the
-    distance D = template length / angle between the two rays of a palm edge:
-    foreshortening only shortens an edge, so the least foreshortened edges give the
-    distance (the second smallest estimate when three or more edges are seen, which
-    ignores one outlying keypoint). The palm's keypoints are lifted along their rays to
-    D (a weak-perspective palm).
 
-    Returns:
-        wrist (rig frame, m), the 21 lifted keypoints (rig frame; only palm ones
-        meaningful), and whether an estimate exists (the wrist and two palm edges seen).
+PNP_START_DEPTHS_M = (0.3, 0.6)
+"""Distances along the palm's mean ray at which the palm pose search starts (with each of
+the 24 cube orientations)."""
+PNP_STEPS = 12
+PNP_HUBER_RAD = 0.01
+"""Huber threshold of the palm pose's angular residuals (about 2.5 px at Aria's 241 px
+focal length, 6 px at 623 px): an outlying keypoint bends the pose little."""
+
+
+class PalmPose(eqx.Module):
+    """The rigid pose of the palm (wrist, thumb CMC, four MCPs) in one frame."""
+
+    rotation: Float[Array, "3 3"]
+    """Hand frame -> rig frame (the MANO global orientation)."""
+    wrist: Float[Array, "3"]
+    """Wrist position, rig frame, metres."""
+    residual_rad: Float[Array, ""]
+    """Root-mean-square angle between the observed rays and the posed palm's rays."""
+    points: Float[Array, ""]
+    """How many palm keypoints at least one view observes."""
+
+
+def _palm_rays(rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"]):
+    rays, valid = jax.vmap(lambda cam, p: cam.unproject_with_validity(p))(rig.cameras, uv)
+    palm = np.asarray(PALM_KEYPOINTS)
+    rays = rays[:, palm] / jnp.linalg.norm(rays[:, palm], axis=-1, keepdims=True)
+    return rays, jnp.where(valid[:, palm], weight[:, palm], 0.0)
+
+
+def _palm_residuals(y, args):
+    """Huber angular residuals of the posed palm in both views (the palm pose's objective):
+    y = (rotation offset (3), wrist offset (3, cm)) from the start (R0, t0)."""
+    rig, rays, w, P, R0, t0 = args
+    R = axis_angle_to_matrix(y[0]) @ R0
+    X = (P @ R.T) + (t0 + 0.01 * y[1])[None]
+    X_views = rig.to_views(X)  # (2, 6, 3)
+    direction = X_views / jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
+    e = huber_vector(direction - rays, PNP_HUBER_RAD) * jnp.sqrt(w)[..., None]
+    return (e.reshape(-1),)
+
+
+def palm_pose(
+    rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"], rest: Float[Array, "21 3"],
+    start_rotation: Float[Array, "3 3"], start_wrist: Float[Array, "3"], has_start: Bool[Array, ""],
+) -> PalmPose:  # fmt: skip
+    """The palm's rigid pose from its keypoints in one or both views (perspective-n-point
+    on any camera model, rays from `unproject_with_validity`).
+
+    The palm keypoints move rigidly with the wrist in MANO, so their template (`rest`,
+    the hand model at the clip's shape) seen along the observed rays fixes the
+    orientation and, through the hand's known size, the distance: in a monocular frame
+    this is the metric depth cue; in a stereo frame both views constrain it. The
+    objective (Huber on the angle between observed and posed rays, confidence-weighted)
+    is solved by Levenberg-Marquardt from 24 cube orientations at two distances along the
+    palm's mean ray, plus the given start (the triangulated palm's Kabsch fit) where
+    `has_start`; the lowest cost wins, which resolves the two mirror-image poses a nearly
+    planar palm admits (the thumb CMC sits off the palm plane).
     """
-    palm_w = weight[:, np.asarray(PALM_KEYPOINTS)]
-    view = jnp.argmax(2 * jnp.sum(palm_w > 0, axis=1) + (weight[:, 0] > 0).astype(jnp.int32))  # most palm, then the wrist
-    cams = rig.cameras
-    rays = jax.vmap(lambda cam, p: cam.unproject_with_validity(p))(cams, uv)  # ((2, 21, 3), (2, 21))
-    d = rays[0][view]
-    ok = (weight[view] > 0) & rays[1][view]
-    d_unit = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    estimates = []
-    for a, b in PALM_EDGES:
-        chord = jnp.linalg.norm(d_unit[a] - d_unit[b])
-        angle = 2.0 * jnp.arcsin(jnp.clip(0.5 * chord, 0.0, 1.0))
-        length = jnp.linalg.norm(rest[a] - rest[b])
-        good = ok[a] & ok[b] & (angle > 1e-4)
-        estimates.append(jnp.where(good, length / jnp.where(good, angle, 1.0), jnp.inf))
-    est = jnp.sort(jnp.stack(estimates))
-    usable = jnp.sum(jnp.isfinite(est))
-    # the least foreshortened edges; the second smallest ignores one outlier keypoint
-    distance = jnp.where(usable >= 3, est[1], est[0])
-    has = (usable >= 2) & ok[0]
-    distance = jnp.clip(distance, *DEPTH_RANGE_M)
-    distance = jnp.where(has, distance, 0.4)
-    lifted_cam = d_unit * distance
-    T_rig_cam = rig.T_rig_cams[view]
-    lifted = apply_transform(T_rig_cam, lifted_cam)
-    return lifted[0], lifted, has
+    rays, w = _palm_rays(rig, uv, weight)
+    P = rest[np.asarray(PALM_KEYPOINTS)] - rest[0][None]
+    dtype = rays.dtype
+    # the starting ray: the weighted mean palm ray of the view that sees the palm best
+    view = jnp.argmax(jnp.sum(w > 0, axis=1))
+    mean_ray = jnp.sum(rays[view] * w[view][:, None], axis=0)
+    mean_ray = mean_ray / jnp.maximum(jnp.linalg.norm(mean_ray), 1e-9)
+    mean_ray = jnp.where(jnp.sum(w[view]) > 0, mean_ray, jnp.asarray([0.0, 0.0, 1.0], dtype))
+    cube = jnp.asarray(_cube_rotations(), dtype)
+    depths = jnp.asarray(PNP_START_DEPTHS_M, dtype)
+    R_starts = jnp.concatenate([start_rotation[None], jnp.tile(cube, (len(PNP_START_DEPTHS_M), 1, 1))])
+    along = apply_transform(rig.T_rig_cams[view], mean_ray[None] * depths[:, None])  # palm centre, rig frame
+    t_cube = along[:, None] - jnp.einsum("sij,j->si", cube, jnp.mean(P, axis=0))[None]  # wrist of each start
+    t_starts = jnp.concatenate([start_wrist[None], t_cube.reshape(-1, 3)])
+
+    def solve_from(R0, t0):
+        y0 = (jnp.zeros(3, dtype), jnp.zeros(3, dtype))
+        y, _, _ = levenberg_marquardt(_palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS)
+        (res,) = _palm_residuals(y, (rig, rays, w, P, R0, t0))
+        return axis_angle_to_matrix(y[0]) @ R0, t0 + 0.01 * y[1], jnp.sum(res * res)
+
+    R, t, cost = jax.vmap(solve_from)(R_starts, t_starts)
+    cost = jnp.where(jnp.arange(cost.shape[0]) == 0, jnp.where(has_start, cost, jnp.inf), cost)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    best = jnp.argmin(cost)
+    total_w = jnp.maximum(jnp.sum(w), 1e-9)
+    # the Huber cost is 0.5 s^2 per residual; report the rms angle of the inliers' scale
+    rms = jnp.sqrt(jnp.minimum(cost[best], 1e6) / total_w)
+    return PalmPose(R[best], t[best], rms, jnp.sum(jnp.any(w > 0, axis=0)).astype(dtype))
 
 
 def initialise(model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas: Float[Array, "10"]) -> Initial:
@@ -222,15 +283,20 @@ def initialise(model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas:
     valid = evidence.joints3d_valid
     dtype = X.dtype
     rest = mano.forward_joints(model, mano.ManoParams(jnp.zeros(3, dtype), jnp.zeros((15, 3), dtype), betas, jnp.zeros(3, dtype)), check_finite=False)
-    mono_wrist, lifted, mono_ok = jax.vmap(monocular_wrist, in_axes=(None, 0, 0, None))(rig, evidence.uv, evidence.weight, rest)
+    palm = np.asarray(PALM_KEYPOINTS)
+    P = rest[palm] - rest[0][None]
+    # the triangulated palm's rigid fit: the pose search's first start
+    tri_w = valid[:, palm].astype(dtype)
+    tri_seen = jnp.sum(tri_w, axis=1) >= 3
+    centre_P = jnp.sum(P[None] * tri_w[..., None], axis=1) / jnp.maximum(jnp.sum(tri_w, axis=1), 1.0)[:, None]
+    centre_Q = jnp.sum(X[:, palm] * tri_w[..., None], axis=1) / jnp.maximum(jnp.sum(tri_w, axis=1), 1.0)[:, None]
+    R_tri = jax.vmap(kabsch)(P[None] - centre_P[:, None], X[:, palm] - centre_Q[:, None], tri_w)
+    wrist_tri = centre_Q - jnp.einsum("tij,tj->ti", R_tri, centre_P)
+    pose = jax.vmap(palm_pose, in_axes=(None, 0, 0, None, 0, 0, 0))(rig, evidence.uv, evidence.weight, rest, R_tri, wrist_tri, tri_seen)
+    pose_ok = (pose.points >= MIN_PALM_POINTS) & (pose.residual_rad <= MAX_PALM_RESIDUAL_RAD)
     tri_ok = valid[:, 0]
-    # a short gap between triangulated wrists is better interpolated than estimated from size
-    t = jnp.arange(X.shape[0])
-    last = jax.lax.cummax(jnp.where(tri_ok, t, -X.shape[0]))
-    nxt = jax.lax.cummin(jnp.where(tri_ok, t, 2 * X.shape[0]), reverse=True)
-    short_gap = jnp.minimum(t - last, nxt - t) <= MAX_INTERPOLATED_GAP
-    mono_ok = mono_ok & ~tri_ok & ~short_gap
-    mono_wrist = _running_median(mono_wrist, mono_ok, MEDIAN_HALF_WINDOW)
+    mono_ok = pose_ok & ~tri_ok
+    mono_wrist = _running_median(pose.wrist, mono_ok, MEDIAN_HALF_WINDOW)
     wrist = jnp.where(tri_ok[:, None], X[:, 0], mono_wrist)
     known = tri_ok | mono_ok
     # nothing to start from anywhere: 0.4 m ahead of the cameras' midpoint
@@ -238,24 +304,14 @@ def initialise(model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas:
     default = jnp.broadcast_to(midpoint + jnp.asarray([0.0, 0.0, 0.4], dtype), wrist.shape)
     transl = jnp.where(jnp.any(known), _interpolate(wrist, known), default)
 
-    palm = np.asarray(PALM_KEYPOINTS)
-    P = rest[palm] - rest[0][None]
-    tri_w = valid[:, palm].astype(dtype)
-    tri_seen = jnp.sum(tri_w, axis=1) >= 3
-    mono_w = (jnp.max(evidence.weight[:, :, palm], axis=1) > 0).astype(dtype)
-    mono_seen = mono_ok & (jnp.sum(mono_w, axis=1) >= 3)
-    Q = jnp.where(tri_seen[:, None, None], X[:, palm], lifted[:, palm]) - transl[:, None]
-    w = jnp.where(tri_seen[:, None], tri_w, mono_w)
-    R = jax.vmap(kabsch, in_axes=(None, 0, 0))(P, Q, w)
-    seen = tri_seen | mono_seen
-    R = R[_nearest_known(seen)]
-    R = jnp.where(jnp.any(seen), R, _egocentric_default(model.is_right, dtype)[None])
+    R = pose.rotation[_nearest_known(pose_ok)]
+    R = jnp.where(jnp.any(pose_ok), R, _egocentric_default(model.is_right, dtype)[None])
     return Initial(
         transl=transl,
         global_orient=matrix_to_axis_angle(R),
         wrist_triangulated=tri_ok,
         wrist_monocular=mono_ok,
-        palm_seen=seen,
+        palm_seen=pose_ok,
     )
 
 

@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from esther_jax import mano
@@ -48,7 +49,7 @@ class Fits(eqx.Module):
 
 class ShapeLock(eqx.Module):
     betas: Float[Array, "10"]
-    """The locked shape: confidence-weighted mean of the chosen frames' shapes."""
+    """The locked shape: the chosen frames' shapes pooled by their information (`pooled_betas`)."""
     chosen: Bool[Array, "frames"]
     """The frames that set it (the most confident stereo frames, or monocular ones when
     the clip has no stereo frame)."""
@@ -110,18 +111,59 @@ def _rounds(problem, fits, data, track, rounds, steps, solver) -> Fits:
 
 @functools.partial(jax.jit, static_argnames=("frames",))
 def _choose(weight: Float[Array, "T 2 21"], stereo: Bool[Array, "T"], observed: Bool[Array, "T"], frames: int):
-    score = jnp.sum(weight, axis=(1, 2))
+    # the hand's size is seen through the joints both views observe (triangulation fixes
+    # their depth); a monocular frame's shape only through its proportions
+    both = jnp.sum(jnp.min(weight, axis=1), axis=1)
+    score = jnp.where(jnp.any(stereo), both, jnp.sum(weight, axis=(1, 2)))
     pool = jnp.where(jnp.any(stereo), stereo, observed)
     ranked = jnp.where(pool, score, -1.0)
     k = min(frames, score.shape[0])
     _, idx = jax.lax.top_k(ranked, k)
     chosen = jnp.zeros(score.shape, bool).at[idx].set(True) & pool
-    return chosen, jnp.where(chosen, score, 0.0), ~jnp.any(stereo)
+    return chosen, ~jnp.any(stereo)
 
 
 @jax.jit
-def _average_betas(betas: Float[Array, "T 10"], w: Float[Array, "T"]) -> Float[Array, "10"]:
-    return jnp.sum(betas * w[:, None], axis=0) / jnp.maximum(jnp.sum(w), 1e-9)
+def pooled_betas(problem: Problem, y: FrameUnknowns, data: FrameData, track: Track, round: Round, chosen: Bool[Array, "frames"]) -> Float[Array, "10"]:
+    """One shape from the chosen frames' shape-lock solutions, each weighted by the
+    information its data carry about the shape.
+
+    Frame f's solution beta_f minimises its objective with the shape prior
+    lambda_b |beta - beta_0|^2 counted in every frame; its Gauss-Newton information about
+    the shape is the Schur complement S_f of its Hessian (pose and wrist eliminated),
+    S_f = D_f + lambda_b^2 I with D_f the data's share. The shape that minimises the
+    frames' linearised objectives together, with the prior counted once, is
+
+        beta = beta_0 + (sum_f D_f + lambda_b^2 I)^-1 sum_f S_f (beta_f - beta_0),
+
+    so a frame whose 2D evidence fixes the size (both views see many joints) counts
+    fully, one that leaves the size free (a monocular frame: size and depth trade off)
+    adds almost nothing, and the per-frame shrinkage towards beta_0 is undone. A frame
+    whose solve stopped short of its minimum adds its remaining (Schur-reduced) gradient
+    g_f to the right-hand side: one Gauss-Newton step of the joint problem."""
+    lam2 = problem.weights.lambda_betas**2
+
+    def information(y1: FrameUnknowns, d1: FrameData, t1: Track):
+        flat, unravel = ravel_pytree(y1)
+        f = lambda x: jnp.concatenate([r.reshape(-1) for r in frame_residuals(unravel(x), (problem, d1, t1, round))])  # noqa: E731
+        r = f(flat)
+        J = jax.jacfwd(f)(flat)
+        H, g = J.T @ J, J.T @ r
+        k = flat.shape[0] - 10  # the betas are the last leaf of FrameUnknowns
+        H_oo = H[:k, :k] + 1e-6 * (jnp.trace(H[:k, :k]) / k + 1.0) * jnp.eye(k, dtype=H.dtype)
+        eliminate = jnp.linalg.solve(H_oo, jnp.concatenate([H[:k, k:], g[:k, None]], axis=1))
+        S = H[k:, k:] - H[k:, :k] @ eliminate[:, :10]
+        g_shape = g[k:] - H[k:, :k] @ eliminate[:, 10]
+        return S, g_shape
+
+    S, g = jax.vmap(information)(y, data, track)  # (T, 10, 10), (T, 10)
+    S = jnp.where(chosen[:, None, None], S, 0.0)
+    g = jnp.where(chosen[:, None], g, 0.0)
+    eye = jnp.eye(10, dtype=S.dtype)
+    n = jnp.sum(chosen).astype(S.dtype)
+    A = jnp.sum(S, axis=0) - jnp.maximum(n - 1.0, 0.0) * lam2 * eye
+    b = jnp.einsum("tij,tj->i", S, y.betas) - jnp.sum(g, axis=0)
+    return problem.betas + jnp.linalg.solve(A, b)
 
 
 def shape_lock(
@@ -129,14 +171,15 @@ def shape_lock(
     *, frames: int = 64, rounds: int = 2, steps: int = 6, solver: str = "lm",
 ) -> ShapeLock:  # fmt: skip
     """Stage 1: shape, pose and wrist jointly on the `frames` most confident stereo frames
-    (observed monocular frames when there are none), the per-frame shapes averaged with
-    their confidences into one locked shape. `problem.betas` is beta_0 (the mean shape)."""
+    (most joints seen by both views; observed monocular frames when there are none), the
+    per-frame shapes pooled by their information into one locked shape (`pooled_betas`). `problem.betas` is beta_0 (the mean shape)."""
     dtype = data.uv.dtype
-    chosen, w, from_mono = _choose(data.weight, stereo, observed, frames)
+    chosen, from_mono = _choose(data.weight, stereo, observed, frames)
     track = Track.none(data.uv.shape[0], dtype)
     free = Round.make(1.0, 1.0, 0.0, dtype)
     fits = _rounds(problem, start, data, track, [free] * rounds, steps, solver)
-    return ShapeLock(_average_betas(fits.betas, w), chosen, from_mono, fits)
+    betas = pooled_betas(problem, _unknowns(fits, data, problem.betas), data, track, free, chosen)
+    return ShapeLock(betas, chosen, from_mono, fits)
 
 
 def fit_frames(
