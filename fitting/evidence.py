@@ -25,6 +25,8 @@ Initialisation, per frame:
 Everything is JAX (jit / vmap-able); nothing goes to the host.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -188,7 +190,7 @@ def _cube_rotations() -> np.ndarray:
     return np.stack(out)
 
 
-PNP_START_DEPTHS_M = (0.3, 0.6)
+PNP_START_DEPTHS_M = (0.45,)
 """Distances along the palm's mean ray at which the palm pose search starts (with each of
 the 24 cube orientations)."""
 PNP_STEPS = 12
@@ -232,6 +234,7 @@ def _palm_residuals(y, args):
 def palm_pose(
     rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"], rest: Float[Array, "21 3"],
     start_rotation: Float[Array, "3 3"], start_wrist: Float[Array, "3"], has_start: Bool[Array, ""],
+    *, search: bool = True,
 ) -> PalmPose:  # fmt: skip
     """The palm's rigid pose from its keypoints in one or both views (perspective-n-point
     on any camera model, rays from `unproject_with_validity`).
@@ -244,7 +247,8 @@ def palm_pose(
     is solved by Levenberg-Marquardt from 24 cube orientations at two distances along the
     palm's mean ray, plus the given start (the triangulated palm's Kabsch fit) where
     `has_start`; the lowest cost wins, which resolves the two mirror-image poses a nearly
-    planar palm admits (the thumb CMC sits off the palm plane).
+    planar palm admits (the thumb CMC sits off the palm plane). With `search=False` only
+    the given start is refined (a pose already found, e.g. with another shape).
     """
     rays, w = _palm_rays(rig, uv, weight)
     P = rest[np.asarray(PALM_KEYPOINTS)] - rest[0][None]
@@ -254,12 +258,14 @@ def palm_pose(
     mean_ray = jnp.sum(rays[view] * w[view][:, None], axis=0)
     mean_ray = mean_ray / jnp.maximum(jnp.linalg.norm(mean_ray), 1e-9)
     mean_ray = jnp.where(jnp.sum(w[view]) > 0, mean_ray, jnp.asarray([0.0, 0.0, 1.0], dtype))
-    cube = jnp.asarray(_cube_rotations(), dtype)
-    depths = jnp.asarray(PNP_START_DEPTHS_M, dtype)
-    R_starts = jnp.concatenate([start_rotation[None], jnp.tile(cube, (len(PNP_START_DEPTHS_M), 1, 1))])
-    along = apply_transform(rig.T_rig_cams[view], mean_ray[None] * depths[:, None])  # palm centre, rig frame
-    t_cube = along[:, None] - jnp.einsum("sij,j->si", cube, jnp.mean(P, axis=0))[None]  # wrist of each start
-    t_starts = jnp.concatenate([start_wrist[None], t_cube.reshape(-1, 3)])
+    R_starts, t_starts = start_rotation[None], start_wrist[None]
+    if search:
+        cube = jnp.asarray(_cube_rotations(), dtype)
+        depths = jnp.asarray(PNP_START_DEPTHS_M, dtype)
+        along = apply_transform(rig.T_rig_cams[view], mean_ray[None] * depths[:, None])  # palm centre, rig frame
+        t_cube = along[:, None] - jnp.einsum("sij,j->si", cube, jnp.mean(P, axis=0))[None]  # wrist of each start
+        R_starts = jnp.concatenate([R_starts, jnp.tile(cube, (len(PNP_START_DEPTHS_M), 1, 1))])
+        t_starts = jnp.concatenate([t_starts, t_cube.reshape(-1, 3)])
 
     def solve_from(R0, t0):
         y0 = (jnp.zeros(3, dtype), jnp.zeros(3, dtype))
@@ -268,7 +274,8 @@ def palm_pose(
         return axis_angle_to_matrix(y[0]) @ R0, t0 + 0.01 * y[1], jnp.sum(res * res)
 
     R, t, cost = jax.vmap(solve_from)(R_starts, t_starts)
-    cost = jnp.where(jnp.arange(cost.shape[0]) == 0, jnp.where(has_start, cost, jnp.inf), cost)
+    if search:
+        cost = jnp.where(jnp.arange(cost.shape[0]) == 0, jnp.where(has_start, cost, jnp.inf), cost)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     best = jnp.argmin(cost)
     total_w = jnp.maximum(jnp.sum(w), 1e-9)
@@ -277,8 +284,14 @@ def palm_pose(
     return PalmPose(R[best], t[best], rms, jnp.sum(jnp.any(w > 0, axis=0)).astype(dtype))
 
 
-def initialise(model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas: Float[Array, "10"]) -> Initial:
-    """Wrist translation and orientation per frame (see the module docstring)."""
+def initialise(
+    model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas: Float[Array, "10"], previous: "Initial | None" = None
+) -> Initial:
+    """Wrist translation and orientation per frame (see the module docstring).
+
+    `previous` (an initialisation with another shape, e.g. before the shape lock) is
+    refined instead of searched again: the palm pose starts from its orientation and
+    wrist only."""
     X = evidence.joints3d
     valid = evidence.joints3d_valid
     dtype = X.dtype
@@ -292,7 +305,13 @@ def initialise(model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas:
     centre_Q = jnp.sum(X[:, palm] * tri_w[..., None], axis=1) / jnp.maximum(jnp.sum(tri_w, axis=1), 1.0)[:, None]
     R_tri = jax.vmap(kabsch)(P[None] - centre_P[:, None], X[:, palm] - centre_Q[:, None], tri_w)
     wrist_tri = centre_Q - jnp.einsum("tij,tj->ti", R_tri, centre_P)
-    pose = jax.vmap(palm_pose, in_axes=(None, 0, 0, None, 0, 0, 0))(rig, evidence.uv, evidence.weight, rest, R_tri, wrist_tri, tri_seen)
+    if previous is None:
+        search = jax.vmap(functools.partial(palm_pose, search=True), in_axes=(None, 0, 0, None, 0, 0, 0))
+        pose = search(rig, evidence.uv, evidence.weight, rest, R_tri, wrist_tri, tri_seen)
+    else:
+        refine = jax.vmap(functools.partial(palm_pose, search=False), in_axes=(None, 0, 0, None, 0, 0, 0))
+        R_prev = axis_angle_to_matrix(previous.global_orient)
+        pose = refine(rig, evidence.uv, evidence.weight, rest, R_prev, previous.transl, jnp.ones_like(tri_seen))
     pose_ok = (pose.points >= MIN_PALM_POINTS) & (pose.residual_rad <= MAX_PALM_RESIDUAL_RAD)
     tri_ok = valid[:, 0]
     mono_ok = pose_ok & ~tri_ok

@@ -113,8 +113,8 @@ def _problem(model, rig, weights, betas, fps) -> Problem:
 
 
 @jax.jit
-def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has):
-    init = ev.initialise(model, rig, evidence, betas)
+def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous=None):
+    init = ev.initialise(model, rig, evidence, betas, previous)
     init = ev.Initial(
         init.transl, jnp.where(mono_has[:, None], mono_orient, init.global_orient),
         init.wrist_triangulated, init.wrist_monocular, init.palm_seen,
@@ -195,7 +195,7 @@ def label_hand(
     t2 = time.perf_counter()
     betas = lock.betas
     problem = _problem(model, rig_t, weights, betas, fps_t)
-    init, _ = _start(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has)
+    init, _ = _start(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
     fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
     timings["fit_frames_s"] = time.perf_counter() - t2
