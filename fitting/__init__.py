@@ -6,7 +6,8 @@ kinematics. The paper's stages are public, typed functions over `eqx.Module`s:
     fuse -> prefilter -> initialise -> shape_lock -> fit_frames -> refine_motion
          -> reprojection_filter -> label_quality
 
-`label_hand` is their composition for one hand of one clip; `label_clip` / `label_clips`
+`label_hand` is their composition for one hand of one clip, `label_hands` for a clip's
+hands as one person's (a hand never seen in stereo takes the other's shape); `label_clip` / `label_clips`
 label clip folders (atomic, resumable). Priors are pluggable (`PosePrior`,
 `MotionPrior`); the solver is part of `LabelConfig` (`SOLVERS`).
 """
@@ -25,6 +26,7 @@ from .objectives import FitWeights as FitWeights
 from .objectives import Problem as Problem
 from .pipeline import LabelConfig as LabelConfig
 from .pipeline import label_hand as label_hand
+from .pipeline import label_hands as label_hands
 from .priors import MotionPrior as MotionPrior
 from .priors import PosePrior as PosePrior
 from .quality import depth_per_disparity as depth_per_disparity

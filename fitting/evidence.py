@@ -219,12 +219,21 @@ def _palm_rays(rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, 
     return rays, jnp.where(valid[:, palm], weight[:, palm], 0.0)
 
 
-def _palm_residuals(y, args):
-    """Huber angular residuals of the posed palm in both views (the palm pose's objective):
-    y = (rotation offset (3), wrist offset (3, cm)) from the start (R0, t0)."""
+class _PalmUnknowns(eqx.Module):
+    rotation: Float[Array, "3"]
+    """Rotation vector applied to the start's orientation (rig frame)."""
+    wrist_cm: Float[Array, "3"]
+    """Wrist offset from the start's, centimetres (conditioning)."""
+
+    def pose(self, R0: Float[Array, "3 3"], t0: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
+        return axis_angle_to_matrix(self.rotation) @ R0, t0 + 0.01 * self.wrist_cm
+
+
+def _palm_residuals(y: _PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
+    """Huber angular residuals of the posed palm in both views (the palm pose's objective)."""
     rig, rays, w, P, R0, t0 = args
-    R = axis_angle_to_matrix(y[0]) @ R0
-    X = (P @ R.T) + (t0 + 0.01 * y[1])[None]
+    R, t = y.pose(R0, t0)
+    X = (P @ R.T) + t[None]
     X_views = rig.to_views(X)  # (2, 6, 3)
     direction = X_views / jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
     e = huber_vector(direction - rays, PNP_HUBER_RAD) * jnp.sqrt(w)[..., None]
@@ -268,10 +277,10 @@ def palm_pose(
         t_starts = jnp.concatenate([t_starts, t_cube.reshape(-1, 3)])
 
     def solve_from(R0, t0):
-        y0 = (jnp.zeros(3, dtype), jnp.zeros(3, dtype))
+        y0 = _PalmUnknowns(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
         y, _, _ = levenberg_marquardt(_palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS)
         (res,) = _palm_residuals(y, (rig, rays, w, P, R0, t0))
-        return axis_angle_to_matrix(y[0]) @ R0, t0 + 0.01 * y[1], jnp.sum(res * res)
+        return *y.pose(R0, t0), jnp.sum(res * res)
 
     R, t, cost = jax.vmap(solve_from)(R_starts, t_starts)
     if search:

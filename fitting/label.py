@@ -13,14 +13,13 @@ import functools
 import json
 import pathlib
 import shutil
-import time
 
 import numpy as np
 
 from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
 
-from .pipeline import LabelConfig, label_hand
+from .pipeline import LabelConfig, label_hands
 
 
 def read_reject_list(path: str | pathlib.Path) -> frozenset[tuple[str, str, int]]:
@@ -103,14 +102,18 @@ def _builtin_id(side: str) -> str:
 
 
 def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary) -> None:
+    keypoints, hand_models, records, monocular = {}, {}, {}, {}
     for side in sides:
-        keypoints = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
-        model, record = _hand_model(side, models, sources)
+        keypoints[side] = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
+        hand_models[side], records[side] = _hand_model(side, models, sources)
         mono_path = clips.hand_file(clip_dir, side, "monocular")
-        monocular = clips.load_npz(mono_path, "monocular") if mono_path.is_file() else None
-        t0 = time.perf_counter()
-        labels, report = label_hand(model, rig, keypoints, float(meta["fps"]), config, monocular)
-        report["seconds"] = time.perf_counter() - t0
+        monocular[side] = clips.load_npz(mono_path, "monocular") if mono_path.is_file() else None
+    # one person's hands share a shape only when both are fitted with the same kind of model
+    share = len({record["source"] == "builtin" for record in records.values()}) == 1
+    results = label_hands(hand_models, rig, keypoints, float(meta["fps"]), config, monocular, share_shape=share)
+    for side in sides:
+        labels, report = results[side]
+        record = records[side]
         report["mano_model"] = record
         rejected = [f for (c, s, f) in rejects if c == clip_dir.name and s == side and f < len(labels["valid"])]
         if rejected:

@@ -142,7 +142,7 @@ def _finish(model, rig, fits, fused, seen, observed, reject_px):
 
 def label_hand(
     model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, config: LabelConfig = LabelConfig(),
-    monocular: dict | None = None,
+    monocular: dict | None = None, shape: np.ndarray | None = None,
 ) -> tuple[dict, dict]:  # fmt: skip
     """Label one hand of one clip.
 
@@ -153,6 +153,9 @@ def label_hand(
         fps: frame rate (the velocity limits are per second).
         monocular: optional per-view monocular MANO estimates (monocular.npz arrays);
             where present they initialise the wrist orientation and the pose.
+        shape: optional betas locked elsewhere for the same person (`label_hands` passes
+            the other hand's); used only when no frame sees this hand in both views,
+            in place of the mean shape (one view cannot tell size from distance).
     Returns:
         (labels, quality): the labels.npz arrays and the quality.json content.
     """
@@ -193,7 +196,11 @@ def label_hand(
     timings["shape_lock_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    betas = lock.betas
+    has_shape = shape is not None
+    if has_shape and np.shape(shape) != (model.num_betas,):
+        raise ValueError(f"shape must be betas of shape ({model.num_betas},), got {np.shape(shape)}")
+    borrowed = jnp.asarray(shape if has_shape else np.zeros(model.num_betas), dtype)
+    betas = jnp.where(lock.from_monocular & has_shape, borrowed, lock.betas)
     problem = _problem(model, rig_t, weights, betas, fps_t)
     init, _ = _start(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
@@ -213,10 +220,10 @@ def label_hand(
              wrist_monocular=init.wrist_monocular)
     )  # fmt: skip
     timings["labels_s"] = time.perf_counter() - t4
-    return _package(out, T, model, mono_has, config, timings)
+    return _package(out, T, model, mono_has, config, timings, has_shape)
 
 
-def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelConfig, timings: dict) -> tuple[dict, dict]:
+def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelConfig, timings: dict, has_shape: bool) -> tuple[dict, dict]:
     sl = slice(0, T)
     fits = out["fits"]
     observed, stereo = out["observed"][sl], out["stereo"][sl]
@@ -240,8 +247,10 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
         notes.append(f"{int(out['num_invalid'])} detections had NaN or infinite values and were treated as missing")
     if not observed.any():
         notes.append("the hand is never detected in either view: no label (all frames invalid)")
+    elif bool(out["from_mono"]) and has_shape:
+        notes.append("no frame sees the hand in both views: the shape is the one locked on the other hand (same person)")
     elif bool(out["from_mono"]):
-        notes.append("no frame sees the hand in both views: the shape was locked from monocular frames (size from the shape prior)")
+        notes.append("no frame sees the hand in both views: the shape is the mean shape (one view cannot tell the hand's size from its distance)")
     if mono.any():
         notes.append(f"{int(mono.sum())} frames see the hand in one view only: labelled as monocular frames (stereo = False)")
     if int(np.asarray(mono_has).sum()):
@@ -253,6 +262,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
         monocular_frames=int(mono.sum()),
         share_passing=report["all"]["share_passing"] or 0.0,
         shape_from_monocular=bool(out["from_mono"]),
+        shape_from_other_hand=bool(out["from_mono"]) and has_shape,
         converged_share=float(labels["converged"][observed].mean()) if observed.any() else 0.0,
         rejected_joints_depth=int(out["rejected_depth"]),
         rejected_joints_bones=int(out["rejected_bones"]),
@@ -262,3 +272,36 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
         timings=timings,
     )
     return labels, report
+
+
+def label_hands(
+    models: dict[str, mano.ManoModel], rig: StereoRig, keypoints: dict[str, dict], fps: float,
+    config: LabelConfig = LabelConfig(), monocular: dict[str, dict | None] | None = None, *, share_shape: bool = True,
+) -> dict[str, tuple[dict, dict]]:  # fmt: skip
+    """Label the hands of one clip (`label_hand` per side), the two hands as one person's:
+    a hand that no frame sees in both views takes the shape locked on the other hand when
+    that one has stereo frames (the hand models must share their shape space, as MANO's
+    right and left models do), instead of the mean shape.
+
+    Args:
+        models, keypoints (and optionally monocular): per side ('right', 'left').
+        share_shape: False labels each hand on its own (models of different shape spaces).
+    Returns:
+        {side: (labels, quality report)}; each report's "seconds" is the time spent on
+        that hand (both passes when it took the other hand's shape).
+    """
+    monocular = monocular or {}
+
+    def one(side: str, shape=None, spent: float = 0.0) -> tuple[dict, dict]:
+        t0 = time.perf_counter()
+        labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape)
+        report["seconds"] = spent + time.perf_counter() - t0
+        return labels, report
+
+    out = {side: one(side) for side in keypoints}
+    locked = {side: report["betas"] for side, (_, report) in out.items() if share_shape and not report["shape_from_monocular"]}
+    for side, (_, report) in list(out.items()):
+        donors = [other for other in locked if other != side]
+        if report["shape_from_monocular"] and donors:
+            out[side] = one(side, np.asarray(locked[donors[0]], np.float64), report["seconds"])
+    return out

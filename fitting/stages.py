@@ -51,8 +51,8 @@ class ShapeLock(eqx.Module):
     betas: Float[Array, "10"]
     """The locked shape: the chosen frames' shapes pooled by their information (`pooled_betas`)."""
     chosen: Bool[Array, "frames"]
-    """The frames that set it (the most confident stereo frames, or monocular ones when
-    the clip has no stereo frame)."""
+    """The frames that set it (the most confident stereo frames; without any, the
+    monocular frames whose fits warm-start `fit_frames`, the shape staying the mean)."""
     from_monocular: Bool[Array, ""]
     """True when no frame was stereo: the shape rests on monocular evidence and the prior."""
     fits: Fits
@@ -171,14 +171,18 @@ def shape_lock(
     *, frames: int = 64, rounds: int = 2, steps: int = 6, solver: str = "lm",
 ) -> ShapeLock:  # fmt: skip
     """Stage 1: shape, pose and wrist jointly on the `frames` most confident stereo frames
-    (most joints seen by both views; observed monocular frames when there are none), the
-    per-frame shapes pooled by their information into one locked shape (`pooled_betas`). `problem.betas` is beta_0 (the mean shape)."""
+    (most joints seen by both views), the per-frame shapes pooled by their information
+    into one locked shape (`pooled_betas`). A clip without a stereo frame keeps the mean
+    shape `problem.betas` (beta_0): one view cannot separate size from distance."""
     dtype = data.uv.dtype
     chosen, from_mono = _choose(data.weight, stereo, observed, frames)
     track = Track.none(data.uv.shape[0], dtype)
     free = Round.make(1.0, 1.0, 0.0, dtype)
     fits = _rounds(problem, start, data, track, [free] * rounds, steps, solver)
     betas = pooled_betas(problem, _unknowns(fits, data, problem.betas), data, track, free, chosen)
+    # one view alone cannot tell a large hand far away from a small one nearby: without a
+    # stereo frame the size is the shape prior's mean (the least-risk guess)
+    betas = jnp.where(from_mono, problem.betas, betas)
     return ShapeLock(betas, chosen, from_mono, fits)
 
 

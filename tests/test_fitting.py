@@ -7,6 +7,7 @@ import pytest
 
 from esther_jax import cameras, cli, clips, mano, metrics
 from esther_jax.data import motion, synth
+import fitting
 from fitting import LabelConfig, evidence, fusion, label_clips, label_hand, quality
 from fitting.priors import MotionPrior, PosePrior, huber_residual
 
@@ -193,29 +194,60 @@ def test_one_and_three_detectors_label(clean_two_hands):
         assert p[ok].mean() < 0.010 and w[ok].mean() < 0.012
 
 
+def test_palm_pose_is_exact_in_one_fisheye_view():
+    """The palm's perspective-n-point recovers the wrist and orientation exactly from one
+    Aria view (no triangulation), whatever the starting guess."""
+    from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
+
+    rig = cameras.rig_preset("hot3d_aria")
+    model = mano.load_builtin("left")
+    rest = mano.forward_joints(model, mano.ManoParams.zeros())
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        go = jnp.asarray(rng.normal(size=3) * 1.5, jnp.float32)
+        wrist = jnp.asarray([-0.12, 0.08, 0.35], jnp.float32)
+        joints = mano.forward_joints(model, mano.ManoParams(go, jnp.asarray(rng.normal(size=(15, 3)) * 0.3, jnp.float32), jnp.zeros(10), wrist))
+        uv = np.asarray(rig.project(joints))  # (2, 21, 2)
+        weight = np.zeros((2, 21), np.float32)
+        weight[0] = 1.0  # the left camera only
+        pose = evidence.palm_pose(rig, jnp.asarray(uv, jnp.float32), jnp.asarray(weight), rest, jnp.eye(3), jnp.zeros(3), jnp.asarray(False))
+        assert float(jnp.linalg.norm(pose.wrist - wrist)) < 1e-3
+        assert float(geodesic_angle(pose.rotation, axis_angle_to_matrix(go))) < 1e-2
+        assert float(pose.residual_rad) < 1e-3 and float(pose.points) == 6
+
+
+def _on_aria(frames: int, index: int):
+    cfg = synth.SynthConfig(num_frames=frames, rig="hot3d_aria", motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    return synth.make_clip(1000, index, cfg)
+
+
 @pytest.mark.slow
 def test_monocular_frames_on_a_divergent_rig():
-    """On the Aria rig (75 degrees apart) most frames see a hand in one camera: they are
-    labelled as monocular frames (depth from the locked hand size and the neighbours), and
-    a clip whose frames are all monocular still gets labels, its shape flagged."""
-    cfg = synth.SynthConfig(num_frames=FRAMES, rig="hot3d_aria", detector_preset="easy", motion_config=motion.MotionConfig(two_hands_probability=1.0))
-    clip = synth.make_clip(11, 2, cfg)
-    seen_mono = 0
-    for side in clip.keypoints:
-        labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0)
-        gt = clip.gt[side]
-        ok, p, w = _scores(labels, gt)
-        mono = ok & ~labels["stereo"]
-        seen_mono += mono.sum()
-        assert ok.sum() >= 0.7 * gt["onscreen"].sum()
-        assert np.median(p[ok]) < 0.015 and np.median(w[ok]) < 0.03
-        assert report["monocular"]["hand_frames"] == int((labels["onscreen"] & ~labels["stereo"]).sum())
-    assert seen_mono > 0
+    """Acceptance of the divergent rig: on the Aria rig (75 degrees apart) most frames see a
+    hand in one camera only; >= 80 % of the on-screen hand-frames are labelled within
+    15 mm P-MPJPE and 25 mm wrist of the exact ground truth (default detector), monocular
+    frames included. A hand never seen in stereo takes the other hand's shape; alone, the
+    mean shape, flagged."""
+    on = good = mono = borrowed = 0
+    for index in range(4):
+        clip = _on_aria(FRAMES, index)
+        results = fitting.label_hands({s: mano.load_builtin(s) for s in clip.keypoints}, clip.rig, clip.keypoints, 30.0)
+        for side, (labels, report) in results.items():
+            ok, p, w = _scores(labels, clip.gt[side])
+            onscreen = clip.gt[side]["onscreen"]
+            on += onscreen.sum()
+            good += (ok & (p <= 0.015) & (w <= 0.025)).sum()
+            mono += (onscreen & ~labels["stereo"]).sum()
+            borrowed += report["shape_from_other_hand"]
+            assert report["monocular"]["hand_frames"] == int((labels["onscreen"] & ~labels["stereo"]).sum())
+    assert mono > 0.5 * on and borrowed >= 1
+    assert good >= 0.8 * on
+    clip = _on_aria(FRAMES, 0)
     kp = {k: v.copy() for k, v in clip.keypoints["left"].items()}
     kp["conf"][:, :, 0] = 0.0  # the left camera never sees this hand
     labels, report = label_hand(mano.load_builtin("left"), clip.rig, kp, 30.0)
     assert report["shape_from_monocular"] and not labels["stereo"].any() and labels["valid"].any()
-    assert any("shape was locked from monocular" in n for n in report["notes"])
+    assert np.allclose(labels["betas"], 0.0) and any("the mean shape" in n for n in report["notes"])
 
 
 @pytest.mark.slow
