@@ -16,7 +16,9 @@ from .fusion import Fused as Fused
 from .fusion import fuse as fuse
 from .evidence import Evidence as Evidence
 from .evidence import Initial as Initial
+from .evidence import PalmPose as PalmPose
 from .evidence import initialise as initialise
+from .evidence import palm_pose as palm_pose
 from .evidence import prefilter as prefilter
 from .evidence import template_bones as template_bones
 from .label import label_clip as label_clip
@@ -38,6 +40,7 @@ from .solve import SOLVERS as SOLVERS
 from .stages import Fits as Fits
 from .stages import ShapeLock as ShapeLock
 from .stages import fit_frames as fit_frames
+from .stages import pooled_betas as pooled_betas
 from .stages import frame_data as frame_data
 from .stages import refine_motion as refine_motion
 from .stages import shape_lock as shape_lock

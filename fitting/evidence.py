@@ -9,18 +9,20 @@ the model's template bone lengths. The survivors' 2D keypoints are the observati
 A joint seen by one view only cannot be triangulated and is kept as a monocular
 observation.
 
-Initialisation, per frame:
-- wrist: the triangulated wrist; within 8 frames of a triangulated wrist the
-  interpolation between them (held at the ends); otherwise, when one view sees
-  the palm, the wrist's ray in that view at the distance the hand's known size implies
-  (the palm's template edge lengths over their angles between rays, least foreshortened
-  edges, clipped to the 0.1-1.0 m range, median-filtered over +-3 frames); frames with none of these are interpolated over time (held at the ends).
-- orientation: a weighted Kabsch fit of the palm (wrist, thumb CMC and the four finger
-  MCPs, which MANO moves rigidly with the wrist) to its triangulation, or in a
-  monocular frame to the palm lifted along its rays at the estimated distance; the
-  thumb CMC sits off the palm plane, which fixes the mirror ambiguity of a flat palm.
-  Frames without a palm copy the nearest frame that has one; a clip without any takes
-  an egocentric default (fingers forward, back of the hand up).
+Initialisation, per frame (`initialise`):
+- the palm's pose (`palm_pose`): the wrist, thumb CMC and four finger MCPs move rigidly
+  with the wrist in MANO, so their template at the clip's shape, seen along the observed
+  rays of one or both views, fixes the orientation and, through the hand's known size,
+  the distance (perspective-n-point on any camera model, from the triangulated palm's
+  Kabsch fit and 24 cube orientations; the lowest cost wins, which also resolves the
+  mirror ambiguity of a nearly flat palm: the thumb CMC sits off its plane). With the
+  locked shape the pose is refined from the first one rather than searched again.
+- wrist: the triangulated wrist where there is one; else the palm pose's wrist
+  (median-filtered over +-3 frames) when at least 4 palm keypoints are seen and their rms
+  ray angle is below 0.05 rad; frames with neither are interpolated over time (held at
+  the ends).
+- orientation: the palm pose's; frames without one copy the nearest frame that has one;
+  a clip without any takes an egocentric default (fingers forward, back of the hand up).
 
 Everything is JAX (jit / vmap-able); nothing goes to the host.
 """

@@ -42,7 +42,7 @@ class LabelConfig:
 
     weights: FitWeights = FitWeights()
     solver: str = "lm"
-    """One of `solve.SOLVERS`: "lm" (ours, fixed steps), "dogleg", "optx-lm" (optimistix), "jaxopt-lm"."""
+    """One of `solve.SOLVERS`: "lm" (ours, fixed steps), "dogleg", "optx-lm" (optimistix)."""
     steps: int = 6
     """Solver steps per round (every round has the same: one compiled solve serves all)."""
     shape_lock_frames: int = 64

@@ -11,7 +11,12 @@ converged and how many steps it took, and one failing frame never aborts the bat
   it compiles 2-3x faster at the same accuracy (benchmarks/teacher.py measures all four).
 - `"dogleg"`: optimistix's dogleg trust-region Gauss-Newton (Cholesky normal equations).
 - `"optx-lm"`: optimistix's Levenberg-Marquardt.
-- `"jaxopt-lm"`: jaxopt's Levenberg-Marquardt (Cholesky), a third-party comparison.
+
+jaxopt's Levenberg-Marquardt was measured beside these (benchmarks/teacher.py, esther
+rig, one 32-frame clip, a loaded machine): first call 59 s against 15 s for "lm", 39
+against 122 hand-frames/s, no more accurate (3.85 / 7.11 mm P-MPJPE / wrist against
+3.41 / 7.80), and upstream no longer develops jaxopt. It earned no place and is not a
+dependency.
 
 All take residuals `fn(y, args) -> tuple of arrays` with `y` a Module of unknowns.
 """
@@ -26,7 +31,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Int
 
-SOLVERS = ("lm", "dogleg", "optx-lm", "jaxopt-lm")
+SOLVERS = ("lm", "dogleg", "optx-lm")
 
 
 class Solution(eqx.Module):
@@ -85,16 +90,6 @@ def _optimistix(solver: optx.AbstractLeastSquaresSolver) -> Callable:
     return run
 
 
-def _jaxopt_lm(residuals, y0, args, *, steps):
-    import jaxopt
-
-    flat0, unravel = ravel_pytree(y0)
-    f = _flat(residuals, unravel, args)
-    lm = jaxopt.LevenbergMarquardt(lambda x: f(x), maxiter=steps, solver="cholesky", tol=1e-3, jit=True)
-    sol = lm.run(flat0)
-    return unravel(sol.params), sol.state.error < 1e-3, sol.state.iter_num
-
-
 def make_solver(name: str) -> Callable:
     """The per-problem solve `run(residuals, y0, args, *, steps) -> (value, converged, steps)`."""
     if name == "lm":
@@ -103,8 +98,6 @@ def make_solver(name: str) -> Callable:
         return _optimistix(optx.Dogleg(rtol=1e-3, atol=1e-3, linear_solver=lx.Normal(lx.Cholesky())))
     if name == "optx-lm":
         return _optimistix(optx.LevenbergMarquardt(rtol=1e-3, atol=1e-3, linear_solver=lx.Normal(lx.Cholesky())))
-    if name == "jaxopt-lm":
-        return _jaxopt_lm
     raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
 
 
