@@ -271,7 +271,7 @@ def label_clips(rig: str, clips: int, frames: int, config: fitting.LabelConfig, 
         results = fitting.label_hands(models, clip.rig, clip.keypoints, clip.meta["fps"], config)  # as `esther label` does
         if mark is not None:
             first = log.summary(mark)
-        for side in sorted(results):
+        for side in results:  # in labelling order: the first call of the run is the compiling one
             labels, report = results[side]
             calls.append((frames, report["seconds"]))
             if len(calls) > 1:
