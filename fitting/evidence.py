@@ -209,7 +209,8 @@ class PalmPose(eqx.Module):
     wrist: Float[Array, "3"]
     """Wrist position, rig frame, metres."""
     residual_rad: Float[Array, ""]
-    """Root-mean-square angle between the observed rays and the posed palm's rays."""
+    """Confidence-weighted root-mean-square angle between the observed rays and the posed
+    palm's rays (radians; Huber-transformed, so an outlier counts about linearly)."""
     points: Float[Array, ""]
     """How many palm keypoints at least one view observes."""
 
@@ -290,7 +291,6 @@ def palm_pose(
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     best = jnp.argmin(cost)
     total_w = jnp.maximum(jnp.sum(w), 1e-9)
-    # the Huber cost is 0.5 s^2 per residual; report the rms angle of the inliers' scale
     rms = jnp.sqrt(jnp.minimum(cost[best], 1e6) / total_w)
     return PalmPose(R[best], t[best], rms, jnp.sum(jnp.any(w > 0, axis=0)).astype(dtype))
 
