@@ -1,4 +1,6 @@
+import os
 import pickle
+import subprocess
 import sys
 import types
 
@@ -7,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from jax.flatten_util import ravel_pytree
@@ -213,9 +216,14 @@ def test_wrong_shapes_are_named(right, field, shape):
         mano.forward(right, params)
 
 
-def test_nan_parameters_raise_under_jit(right):
+def test_nan_parameters_are_named(right):
+    """Concrete parameters are checked eagerly (a ValueError naming the fields); traced
+    ones when the program runs (eqx.filter_jit shows the message plainly)."""
     params = eqx.tree_at(lambda p: p.hand_pose, mano.ManoParams.zeros(), jnp.full((15, 3), jnp.nan))
-    with pytest.raises(Exception, match="NaN or infinite"):
+    for fn in (mano.forward, mano.forward_joints):
+        with pytest.raises(ValueError, match=r"ManoParams contains NaN or infinite values \(in hand_pose\)"):
+            fn(right, params)
+    with pytest.raises(Exception, match="ManoParams contains NaN or infinite"):
         jax.block_until_ready(eqx.filter_jit(mano.forward_joints)(right, params))
 
 
@@ -429,6 +437,41 @@ def test_bad_files_say_what_is_wrong(right, tmp_path):
         mano.load_mano_pkl(tmp_path / "absent.pkl")
     with pytest.raises(ValueError, match="side"):
         mano.load_builtin("both")
+
+
+class _Payload:
+    """Unpickles to `call(*args)`: what a hostile MANO file would do."""
+
+    def __init__(self, call, *args):
+        self.call, self.args = call, args
+
+    def __reduce__(self):
+        return self.call, self.args
+
+
+def test_pickles_that_would_run_code_are_refused(right, tmp_path):
+    """Loading never calls what a file names unless a MANO file needs it: a payload
+    alone, or hidden as one extra entry of a valid MANO dictionary, creates nothing."""
+    good = mano.save_mano_pkl(right, tmp_path / "MANO_RIGHT.pkl")
+    with open(good, "rb") as f:
+        valid = pickle.load(f)
+    witness = tmp_path / "pwned"
+    payloads = {
+        "os.system": _Payload(os.system, f"touch {witness}"),
+        "builtins.open": _Payload(open, str(witness), "w"),
+        "builtins.eval": _Payload(eval, f"open({str(witness)!r}, 'w')"),
+        "subprocess.run": _Payload(subprocess.run, ["touch", str(witness)]),
+        # scipy.sparse is allowed for its matrix classes only: its functions write files
+        "scipy.sparse.save_npz": _Payload(scipy.sparse.save_npz, str(witness), scipy.sparse.eye(2, format="csr")),
+    }
+    for name, payload in payloads.items():
+        for protocol in (2, pickle.HIGHEST_PROTOCOL):
+            for content in (payload, {**valid, "hands_coeffs": payload}):
+                path = tmp_path / "MANO_RIGHT.pkl"
+                path.write_bytes(pickle.dumps(content, protocol=protocol))
+                with pytest.raises(mano.ManoFileError, match="not a safe MANO file: it names "):
+                    mano.load_mano_pkl(path)
+                assert not witness.exists() and not witness.with_suffix(".npz").exists(), name
 
 
 def test_smplx_gives_the_same_vertices_and_joints(right, left, tmp_path):

@@ -2,6 +2,7 @@
 gradients, jit/vmap, serialisation, backbone weights (small configs, few frames)."""
 
 import dataclasses
+import json
 
 import equinox as eqx
 import jax
@@ -334,8 +335,19 @@ def test_save_and_load_round_trip(tmp_path, tiny_net, hand_model):
     for a, b in zip(jax.tree.leaves(tiny_net), jax.tree.leaves(loaded)):
         np.testing.assert_array_equal(a, b)
     M.save(folder, tiny_net)  # overwrite in place
-    (folder / "weights.eqx").write_bytes(b"not weights")
-    with pytest.raises(ValueError, match="does not match"):
+    weights = folder / "weights.eqx"
+    raw = bytearray(weights.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF  # one flipped byte inside a weight
+    weights.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="damaged or was replaced"):
+        M.load(folder)
+    weights.write_bytes(b"not weights")
+    with pytest.raises(ValueError, match="damaged or was replaced"):
+        M.load(folder)
+    config = json.loads((folder / "config.json").read_text())
+    config.pop("weights_sha256")
+    (folder / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match="records no weights_sha256"):
         M.load(folder)
     with pytest.raises(FileNotFoundError, match="not a saved ESTHER model"):
         M.load(tmp_path)

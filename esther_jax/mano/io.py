@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
+from ..files import atomic_output
 from .constants import FINGERTIP_IDS_MANOPTH, FINGERTIP_IDS_SMPLX, MANO_PARENTS, NUM_POSE_FEATURES
 from .model import ManoModel
 
@@ -102,13 +103,54 @@ class _ChumpyStub:
         self._state = state
 
 
-class _NoChumpyUnpickler(pickle.Unpickler):
+# What a MANO pickle may name: numpy arrays, dtypes and scalars (under numpy 1's and 2's
+# module paths), the scipy sparse matrix classes (also under their old private modules),
+# Python 2's object reconstruction, Python 3's latin-1 bytes (`_latin1_bytes`), and chumpy
+# classes (replaced by `_ChumpyStub`).
+# Any other global (os.system, builtins.eval, subprocess, ...) is refused: unpickling
+# calls what the file names, so a loader that resolves any global runs any code.
+_NUMPY_GLOBALS = {
+    ("numpy", "ndarray"), ("numpy", "dtype"),
+    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
+}  # fmt: skip
+_PYTHON_GLOBALS = {
+    (module, name)
+    for module in ("__builtin__", "builtins")  # Python 2's and 3's name (pickles of both exist)
+    for name in ("object", "set", "frozenset")  # chumpy arrays keep sets of their dirty variables
+} | {("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor")}
+_SPARSE_TYPES = {name for name in dir(sp) if isinstance(getattr(sp, name), type) and issubclass(getattr(sp, name), (sp.spmatrix, sp.sparray))}
+
+
+def _latin1_bytes(text: str, encoding: str = "latin1") -> bytes:
+    """What Python 3 protocol-2 pickles call to rebuild bytes (`_codecs.encode(text,
+    'latin1')`, e.g. the raw data of numpy arrays), and nothing more."""
+    if encoding not in ("latin1", "latin-1") or not isinstance(text, str):
+        raise _RefusedGlobal(f"it calls _codecs.encode with {encoding!r}; MANO files only rebuild latin-1 bytes")
+    return text.encode("latin1")
+
+
+class _RefusedGlobal(pickle.UnpicklingError):
+    """The pickle names a global a MANO file never needs."""
+
+
+class _MANOUnpickler(pickle.Unpickler):
+    """Resolves only the globals a MANO file needs; chumpy classes become `_ChumpyStub`."""
+
     def find_class(self, module: str, name: str):
         if module == "chumpy" or module.startswith("chumpy."):
             return _ChumpyStub
-        if module.startswith("scipy.sparse"):  # old private module paths (scipy.sparse.csc, ...)
-            return getattr(sp, name)
-        return super().find_class(module, name)
+        if (module == "scipy.sparse" or module.startswith("scipy.sparse.")) and name in _SPARSE_TYPES:
+            return getattr(sp, name)  # old private module paths (scipy.sparse.csc, ...) too
+        if (module, name) == ("_codecs", "encode"):
+            return _latin1_bytes
+        if (module, name) in _NUMPY_GLOBALS or (module, name) in _PYTHON_GLOBALS:
+            return super().find_class(module, name)
+        raise _RefusedGlobal(
+            f"it names {module}.{name}: a MANO file holds only numpy arrays, scipy sparse matrices and "
+            "chumpy arrays; loading refused, since resolving any other name could run code hidden in the file"
+        )
 
 
 def _to_numpy(value, key: str) -> np.ndarray:
@@ -133,7 +175,9 @@ def _read_pickle(path: pathlib.Path) -> dict:
     if not raw:
         raise ManoFileError(f"{path} is empty")
     try:
-        data = _NoChumpyUnpickler(io.BytesIO(raw), encoding="latin1").load()
+        data = _MANOUnpickler(io.BytesIO(raw), encoding="latin1").load()
+    except _RefusedGlobal as err:
+        raise ManoFileError(f"{path} is not a safe MANO file: {err}") from err
     except (EOFError, pickle.UnpicklingError, ValueError, TypeError, AttributeError, ImportError) as err:
         if raw[:2] != b"\x80\x02" and raw[:1] != b"\x80" and not raw.startswith(b"("):
             raise ManoFileError(f"{path} is not a pickle (first bytes {raw[:8]!r})") from err
@@ -273,10 +317,8 @@ def save_mano_pkl(model: ManoModel, path: str | pathlib.Path) -> pathlib.Path:
         "bs_style": "lbs",
         "bs_type": "lrotmin",
     }
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
         pickle.dump(data, f, protocol=2)
-    tmp.replace(path)
     return path
 
 

@@ -13,6 +13,7 @@ All 3x3 products are broadcast multiply-adds (`_math.matmul3`): tiny batched
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._math import apply3, chunked, matmul3
@@ -138,10 +139,27 @@ def _keypoints(posed: PosedHand, tips: Float[Array, "5 3"]) -> Float[Array, "21 
     return jnp.concatenate([posed.translations, tips], axis=0)[jnp.asarray(KEYPOINT_FROM_MANO)]
 
 
+def _check_finite_eagerly(params: ManoParams) -> bool:
+    """Raise a ValueError naming the non-finite fields of concrete parameters; False
+    (nothing checked) when they are traced."""
+    fields = ("global_orient", "hand_pose", "betas", "transl")
+    try:
+        concrete = {name: np.asarray(getattr(params, name)) for name in fields}
+    except jax.errors.TracerArrayConversionError:
+        return False  # traced: checked when the program runs
+    bad = [name for name, value in concrete.items() if not np.all(np.isfinite(value))]
+    if bad:
+        raise ValueError(f"ManoParams contains NaN or infinite values (in {', '.join(bad)})")
+    return True
+
+
 def _check_params(model: ManoModel, params: ManoParams, check_finite: bool) -> ManoParams:
-    """Trace-time shape checks and, if asked, a run-time finiteness check (`eqx.error_if`,
-    a host callback: compiled programs that contain one are not stored in the persistent
-    compilation cache, so solvers validate at their edge and pass `check_finite=False`)."""
+    """Trace-time shape checks and, if asked, a finiteness check: eager (a ValueError
+    naming the fields) when the parameters are concrete arrays, else at run time
+    (`eqx.error_if`: under `jax.jit` its message comes wrapped in a runtime error,
+    `eqx.filter_jit` shows it plainly). The run-time check is a host callback, and
+    compiled programs that contain one are not stored in the persistent compilation
+    cache, so solvers validate at their edge and pass `check_finite=False`."""
     expected = {"global_orient": (3,), "hand_pose": (15, 3), "transl": (3,)}
     for name, shape in expected.items():
         got = getattr(params, name).shape
@@ -153,6 +171,8 @@ def _check_params(model: ManoModel, params: ManoParams, check_finite: bool) -> M
     if params.betas.ndim != 1 or params.betas.shape[0] > model.num_betas:
         raise ValueError(f"ManoParams.betas has shape {params.betas.shape}, expected (k,) with k <= {model.num_betas}")
     if not check_finite:
+        return params
+    if _check_finite_eagerly(params):
         return params
     finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(params)]))
     return eqx.error_if(params, ~finite, "ManoParams contains NaN or infinite values")
@@ -224,6 +244,7 @@ def forward_batch(model: ManoModel, params: ManoParams, *, chunk: int = 32) -> M
     Large batches go through `lax.map` over blocks of `chunk` hands (32 measured best
     on a 2-core CPU), which keeps the per-vertex intermediates in cache and avoids
     faulting fresh pages: about 2x the throughput of a plain vmap at B >= 1024 on CPU
-    (benchmarks/fk.py). Same values.
+    (benchmarks/fk.py). Same values; concrete parameters are checked for NaN here.
     """
+    _check_finite_eagerly(params)
     return chunked(lambda p: jax.vmap(forward, in_axes=(None, 0))(model, p), params, chunk)

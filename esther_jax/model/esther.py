@@ -8,17 +8,21 @@ the serialised leaves.
 """
 
 import dataclasses
+import hashlib
+import json
 import os
 import pathlib
 import shutil
 import tempfile
 
+import cv2
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from ..files import read_json
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
 from ._layers import broadcasting
@@ -292,24 +296,46 @@ def predict(
 # ----------------------------------------------------------------------------- inputs
 
 
-def clip_input_from_crops(crops: dict[str, np.ndarray], T_rig_cams: np.ndarray, view_present: np.ndarray | None = None) -> ClipInput:
+def clip_input_from_crops(
+    crops: dict[str, np.ndarray],
+    T_rig_cams: np.ndarray,
+    view_present: np.ndarray | None = None,
+    *,
+    size: int | None = None,
+    frames: slice = slice(None),
+) -> ClipInput:
     """A `ClipInput` from one hand's stored crops (`crops/<side>.npz` of a clip:
-    images (T, 2, S, S[, 3]) uint8, K, R_cam_crop, flow) and the rig's camera poses."""
-    images = np.asarray(crops["images"])
+    images (T, 2, S, S[, 3]) uint8, K, R_cam_crop, flow) and the rig's camera poses.
+
+    Args:
+        size: resize the crops to `size` x `size` pixels (a config's `crop_size`; the
+            synthetic engine stores 224), scaling K with them (pixel-centre convention).
+        frames: the frames to take (e.g. `slice(0, cfg.num_frames)`: a network sees at
+            most its config's `num_frames`).
+    """
+    images = np.asarray(crops["images"])[frames]
     if images.ndim == 4:  # grayscale rigs: replicate to RGB
         images = np.repeat(images[..., None], 3, axis=-1)
-    if images.ndim != 5 or images.shape[1] != 2 or images.shape[-1] != 3:
+    if images.ndim != 5 or images.shape[1] != 2 or images.shape[-1] != 3 or images.shape[2] != images.shape[3]:
         raise ValueError(f"crop images must be (T, 2, S, S[, 3]); got {crops['images'].shape}")
+    K = np.asarray(crops["K"], np.float64)[frames]
+    if size is not None and size != images.shape[2]:
+        scale = size / images.shape[2]
+        interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+        images = np.stack([[cv2.resize(view, (size, size), interpolation=interpolation) for view in frame] for frame in images])
+        K = K.copy()
+        K[..., :2, :2] *= scale
+        K[..., :2, 2] = scale * (K[..., :2, 2] + 0.5) - 0.5
     dtype = jnp.result_type(float)
     T = images.shape[0]
-    present = np.ones((T, 2), bool) if view_present is None else np.asarray(view_present, bool)
+    present = np.ones((T, 2), bool) if view_present is None else np.asarray(view_present, bool)[frames]
     return ClipInput(
         images=jnp.asarray(np.moveaxis(images, -1, 2), dtype) / 255.0,
         features=None,
-        K=jnp.asarray(crops["K"], dtype),
-        R_cam_crop=jnp.asarray(crops["R_cam_crop"], dtype),
+        K=jnp.asarray(K, dtype),
+        R_cam_crop=jnp.asarray(np.asarray(crops["R_cam_crop"])[frames], dtype),
         T_rig_cams=jnp.asarray(T_rig_cams, dtype),
-        flow=jnp.asarray(crops["flow"], dtype),
+        flow=jnp.asarray(np.asarray(crops["flow"])[frames], dtype),
         view_present=jnp.asarray(present),
     )
 
@@ -318,16 +344,19 @@ def clip_input_from_crops(crops: dict[str, np.ndarray], T_rig_cams: np.ndarray, 
 
 WEIGHTS_FILE = "weights.eqx"
 CONFIG_FILE = "config.json"
+DIGEST_KEY = "weights_sha256"
 
 
 def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
-    """Write `config.json` and `weights.eqx` (`eqx.tree_serialise_leaves`) atomically."""
+    """Write `config.json` (the config and the sha256 of the weights) and `weights.eqx`
+    (`eqx.tree_serialise_leaves`) atomically: a new folder renamed into place."""
     folder = pathlib.Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        (tmp / CONFIG_FILE).write_text(model.config.to_json())
         eqx.tree_serialise_leaves(tmp / WEIGHTS_FILE, model)
+        record = {**json.loads(model.config.to_json()), DIGEST_KEY: _sha256(tmp / WEIGHTS_FILE)}
+        (tmp / CONFIG_FILE).write_text(json.dumps(record, indent=2, sort_keys=True))
         if folder.exists():
             shutil.rmtree(folder)
         os.replace(tmp, folder)
@@ -337,15 +366,34 @@ def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
 
 
 def load(folder: str | pathlib.Path) -> ESTHER:
-    """A model written by `save`: its config rebuilds the structure from shapes, then the
-    leaves are read (no training code needed)."""
+    """A model written by `save`: the weights' digest is checked against `config.json`,
+    the config rebuilds the structure from shapes, then the leaves are read (no training
+    code needed)."""
     folder = pathlib.Path(folder)
     for name in (CONFIG_FILE, WEIGHTS_FILE):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"{folder} is not a saved ESTHER model: {name} is missing")
-    cfg = ModelConfig.from_json((folder / CONFIG_FILE).read_text())
+    record = read_json(folder / CONFIG_FILE)
+    if DIGEST_KEY not in record:
+        raise ValueError(f"{folder / CONFIG_FILE} records no {DIGEST_KEY}: the weights cannot be verified (save the model again)")
+    expected = record.pop(DIGEST_KEY)
+    actual = _sha256(folder / WEIGHTS_FILE)
+    if actual != expected:
+        raise ValueError(
+            f"{folder / WEIGHTS_FILE} is damaged or was replaced: its sha256 {actual[:16]}... differs from "
+            f"{expected[:16] if isinstance(expected, str) else expected!r}... recorded in {CONFIG_FILE}"
+        )
+    cfg = ModelConfig.from_json(json.dumps(record))
     skeleton = eqx.filter_eval_shape(ESTHER, cfg, key=jax.random.key(0))
     try:
         return eqx.tree_deserialise_leaves(folder / WEIGHTS_FILE, skeleton)
     except Exception as err:
         raise ValueError(f"{folder / WEIGHTS_FILE} does not match its config.json ({cfg.name}): {err}") from err
+
+
+def _sha256(path: pathlib.Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
