@@ -11,7 +11,7 @@ a camera whose fields have a leading axis).
 """
 
 import abc
-import json
+import functools
 import math
 import pathlib
 
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._io import read_json
+from .files import read_json, write_json
 from ._math import apply3, eps, safe_norm
 
 _Z_MIN = 1e-6
@@ -35,6 +35,24 @@ def _safe_depth(z: Array) -> Array:
 def _inside_image(uv: Float[Array, "*batch 2"], width: int, height: int, margin: float = 0.0) -> Bool[Array, "*batch"]:
     u, v = uv[..., 0], uv[..., 1]
     return (u >= -0.5 - margin) & (u < width - 0.5 + margin) & (v >= -0.5 - margin) & (v < height - 0.5 + margin)
+
+
+def _takes(size: int, what: str):
+    """Method decorator: the first argument must have shape (..., size), checked at trace
+    time. Without it a 2-vector broadcasts silently (to the principal point) and
+    homogeneous (N, 4) points are read as 3D points."""
+
+    def wrap(method):
+        @functools.wraps(method)
+        def checked(self, x, *args, **kwargs):
+            shape = jnp.shape(x)
+            if shape[-1:] != (size,):
+                raise ValueError(f"{type(self).__name__}.{method.__name__} takes {what} of shape (..., {size}); got shape {shape}")
+            return method(self, x, *args, **kwargs)
+
+        return checked
+
+    return wrap
 
 
 class AbstractCamera(eqx.Module):
@@ -103,18 +121,22 @@ class PinholeCamera(AbstractCamera):
         o = jnp.ones_like(self.fx)
         return jnp.stack([jnp.stack([self.fx, z, self.cx]), jnp.stack([z, self.fy, self.cy]), jnp.stack([z, z, o])])
 
+    @_takes(3, "points (m)")
     def project(self, point_cam: Float[Array, "*batch 3"]) -> Float[Array, "*batch 2"]:
         z = _safe_depth(point_cam[..., 2])
         return jnp.stack([self.fx * point_cam[..., 0] / z + self.cx, self.fy * point_cam[..., 1] / z + self.cy], -1)
 
+    @_takes(2, "pixels")
     def unproject(self, uv: Float[Array, "*batch 2"]) -> Float[Array, "*batch 3"]:
         x = (uv[..., 0] - self.cx) / self.fx
         y = (uv[..., 1] - self.cy) / self.fy
         return jnp.stack([x, y, jnp.ones_like(x)], -1)
 
+    @_takes(2, "pixels")
     def unproject_with_validity(self, uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         return self.unproject(uv), jnp.ones(uv.shape[:-1], bool)
 
+    @_takes(3, "points (m)")
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
         return (point_cam[..., 2] > _Z_MIN) & _inside_image(self.project(point_cam), self.width, self.height, margin)
 
@@ -209,6 +231,7 @@ class Fisheye624Camera(AbstractCamera):
         uy = y + dot2 * y + rd2 * p1 + s[2] * rd2 + s[3] * rd2 * rd2
         return jnp.stack([ux, uy], -1)
 
+    @_takes(3, "points (m)")
     def project(self, point_cam: Float[Array, "*batch 3"]) -> Float[Array, "*batch 2"]:
         z = _safe_depth(point_cam[..., 2])
         ab = point_cam[..., :2] / z[..., None]
@@ -216,6 +239,7 @@ class Fisheye624Camera(AbstractCamera):
         ud = self._tangential_prism(factor[..., None] * ab)
         return jnp.stack([self.fx * ud[..., 0] + self.cx, self.fy * ud[..., 1] + self.cy], -1)
 
+    @_takes(2, "pixels")
     def unproject(self, uv: Float[Array, "*batch 2"]) -> Float[Array, "*batch 3"]:
         """Fixed-iteration Newton (jit-friendly): first undo the tangential/thin-prism
         part (2x2 Newton), then the radial polynomial in theta (scalar Newton).
@@ -224,6 +248,7 @@ class Fisheye624Camera(AbstractCamera):
         mirrored or unconverged; `unproject_with_validity` says where."""
         return self.unproject_with_validity(uv)[0]
 
+    @_takes(2, "pixels")
     def unproject_with_validity(self, uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """`unproject` and its validity: both Newton solves converged (residual within
         `sqrt(eps)`, in normalised units), the tangential/thin-prism map is locally
@@ -280,6 +305,7 @@ class Fisheye624Camera(AbstractCamera):
         valid = converged_xy & invertible_xy & converged_theta & in_angle & monotonic & jnp.all(jnp.isfinite(ray))
         return ray, jax.lax.stop_gradient(valid)
 
+    @_takes(3, "points (m)")
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
         z = point_cam[..., 2]
         lateral = jnp.sqrt(jnp.sum(point_cam[..., :2] ** 2, axis=-1))
@@ -370,18 +396,21 @@ class StereoRig(eqx.Module):
         exact rigid inverses of `T_rig_cams`."""
         return jnp.stack([jnp.eye(4, dtype=self.T_left_right.dtype), self.T_right_left])
 
+    @_takes(3, "points (m)")
     def to_views(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch 3"]:
         """Rig-frame points (m) in the left and right camera frames (m), stacked on a
         leading view axis. The left view is the rig frame itself, returned unchanged."""
         X_right = apply_transform(self.T_right_left, X_rig)
         return jnp.stack([X_rig, X_right])
 
+    @_takes(3, "points (m)")
     def project(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch 2"]:
         """Pixels (pixel-centre convention) of rig-frame points (m) in each view, each
         projected with its own camera; no validity check (see `is_visible`)."""
         X_left, X_right = self.to_views(X_rig)
         return jnp.stack([self.left.project(X_left), self.right.project(X_right)])
 
+    @_takes(3, "points (m)")
     def is_visible(self, X_rig: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "2 *batch"]:
         """Per view: in front of the camera, inside its valid field of view and inside the
         image (optionally widened by `margin` pixels), for rig-frame points (m)."""
@@ -423,7 +452,10 @@ class StereoRig(eqx.Module):
             if view not in cams:
                 raise ValueError(f"{source}: camera '{view}' is missing (found {sorted(cams)})")
         left, right = (_camera_from_dict(cams[v], f"{source}: camera '{v}'") for v in ("left", "right"))
-        T = np.asarray(data.get("T_left_right", np.nan), dtype=np.float64)
+        try:
+            T = np.asarray(data.get("T_left_right", np.nan), dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{source}: T_left_right must be a finite 4x4 matrix of numbers ({err})") from err
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"{source}: T_left_right must be a finite 4x4 matrix, got shape {T.shape}")
         R = T[:3, :3]
@@ -443,34 +475,40 @@ class StereoRig(eqx.Module):
 
     def to_json(self, path: str | pathlib.Path) -> pathlib.Path:
         """Write `rig.json` atomically."""
-        path = pathlib.Path(path)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1))
-        tmp.replace(path)
-        return path
+        return write_json(path, self.to_dict())
 
 
-def _camera_from_dict(d: dict, where: str) -> AbstractCamera:
-    try:
-        model, width, height = d["model"], int(d["width"]), int(d["height"])
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{where}: needs 'model', 'width' and 'height' ({err})") from err
-    if width <= 0 or height <= 0:
-        raise ValueError(f"{where}: image size {width}x{height} must be positive")
+def _image_size(d: dict, key: str, where: str) -> int:
+    """A positive whole number of pixels (JSON 640 or 640.0; not "640", true, Infinity or 640.5)."""
+    value = d.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value != int(value) or value <= 0:
+        raise ValueError(f"{where}: '{key}' must be a positive whole number of pixels, got {value!r}")
+    return int(value)
+
+
+def _number(d: dict, key: str, where: str) -> float:
+    value = d.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where}: '{key}' must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _camera_from_dict(d: object, where: str) -> AbstractCamera:
+    if not isinstance(d, dict) or "model" not in d:
+        raise ValueError(f"{where}: must be an object with 'model', 'width' and 'height'")
+    model, width, height = d["model"], _image_size(d, "width", where), _image_size(d, "height", where)
     if model == "pinhole":
-        try:
-            values = [float(d[k]) for k in ("fx", "fy", "cx", "cy")]
-        except (KeyError, TypeError, ValueError) as err:
-            raise ValueError(f"{where}: a pinhole camera needs numeric fx, fy, cx, cy ({err})") from err
-        if not all(math.isfinite(v) for v in values) or values[0] <= 0 or values[1] <= 0:
+        values = [_number(d, k, where) for k in ("fx", "fy", "cx", "cy")]
+        if values[0] <= 0 or values[1] <= 0:
             raise ValueError(f"{where}: focal lengths must be positive and finite, got fx={values[0]}, fy={values[1]}")
         return PinholeCamera(*values, width, height)
     if model == "fisheye624":
         try:
-            return Fisheye624Camera.from_params(d["params"], width, height, float(d.get("max_angle", 1.4)))
+            max_angle = _number(d, "max_angle", where) if "max_angle" in d else 1.4
+            return Fisheye624Camera.from_params(d["params"], width, height, max_angle)
         except KeyError as err:
             raise ValueError(f"{where}: a fisheye624 camera needs 'params'") from err
-        except ValueError as err:
+        except (TypeError, ValueError) as err:
             raise ValueError(f"{where}: {err}") from err
     raise ValueError(f"{where}: unknown camera model {model!r} (expected 'pinhole' or 'fisheye624')")
 

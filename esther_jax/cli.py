@@ -4,6 +4,8 @@ import argparse
 import pathlib
 import sys
 
+from .files import check_out_dir, write_json
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="esther", description="ESTHER: metric 3D hands from egocentric stereo (JAX)")
@@ -46,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
     args = parser.parse_args(argv)
+    try:  # before minutes of work: the output folder must be a writable folder
+        check_out_dir(args.out)
+    except ValueError as err:
+        print(f"esther {args.command}: {err}", file=sys.stderr)
+        return 2
     from . import enable_compilation_cache
 
     enable_compilation_cache()
@@ -63,7 +70,11 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset,
                           render=args.render, crops=args.crops, vertices=args.vertices)  # fmt: skip
-        summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
+        try:
+            summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
+        except ValueError as err:  # a folder made with other settings
+            print(f"esther synth: {err}", file=sys.stderr)
+            return 2
         print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")
     elif args.command == "evaluate":
         from .eval import evaluate_folders
@@ -80,14 +91,18 @@ def main(argv: list[str] | None = None) -> int:
                 f"hands, joints scored for all (list in metrics.json); first, {skipped[0]['hand']}: {skipped[0]['reason']}",
                 file=sys.stderr,
             )
+        if result["identity_unverified"]:
+            print(
+                f"esther evaluate: {len(result['identity_unverified'])} predicted clips record no source clip (not labelled by "
+                f"esther label?), so their identity was not checked: {', '.join(result['identity_unverified'][:5])}",
+                file=sys.stderr,
+            )
         print((pathlib.Path(args.out) / "table.md").read_text())
         print(f"{result['num_hands']} hands, coverage {result['coverage']:.1%}; wrote {pathlib.Path(args.out).resolve()}")
     return 0
 
 
 def _label(args) -> int:
-    import json
-
     from fitting import label_clips, read_reject_list
     from fitting.label import review_clip
 
@@ -96,17 +111,21 @@ def _label(args) -> int:
     clips = []
     for path in args.clips:
         try:
-            clips.extend(list_clips(path))
+            found = list_clips(path)
         except ClipFormatError as err:
             print(f"esther label: {err}", file=sys.stderr)
             return 2
+        if not found:
+            print(f"esther label: no clip found in {path} (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)", file=sys.stderr)
+            return 2
+        clips.extend(found)
     try:
         rejects = read_reject_list(args.reject) if args.reject else frozenset()
         models, sources = _mano_models(args.mano) if args.mano else (None, None)
-    except (OSError, ValueError) as err:  # includes mano.ManoFileError
+        result = label_clips(clips, args.out, resume=args.resume, rejects=rejects, models=models, model_sources=sources)
+    except (OSError, ValueError) as err:  # unwritable --out, clashing clip names, bad reject list or MANO file
         print(f"esther label: {err}", file=sys.stderr)
         return 2
-    result = label_clips(clips, args.out, resume=args.resume, rejects=rejects, models=models, model_sources=sources)
     if args.review:
         for summary in result["labelled"]:
             for sheet in review_clip(next(c for c in clips if c.name == summary["clip"]), pathlib.Path(args.out)):
@@ -118,8 +137,8 @@ def _label(args) -> int:
         f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames, {rate:.0f} hand-frames/s), "
         f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
     )
-    (pathlib.Path(args.out) / "label_summary.json").write_text(json.dumps(result, indent=1, default=float))
-    return 1 if result["failed"] and not result["labelled"] else 0
+    write_json(pathlib.Path(args.out) / "label_summary.json", result)
+    return 1 if result["failed"] else 0
 
 
 def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:

@@ -14,13 +14,15 @@ Every loader validates keys, shapes and values and says what is wrong with a fil
 (missing, truncated, not an npz, wrong shape, NaN); writers are atomic.
 """
 
-import json
+import hashlib
+import math
 import pathlib
 import zipfile
+import zlib
 
 import numpy as np
 
-from ._io import read_json
+from .files import atomic_output, read_json, write_json
 
 SIDES = ("right", "left")
 
@@ -36,7 +38,8 @@ _LABEL_KEYS = {**_HAND_KEYS, "valid": ("T",), "residual_px": ("T",)}
 _KEYPOINT_KEYS = {"uv": ("D", "T", 2, 21, 2), "conf": ("D", "T", 2, 21), "box": ("D", "T", 2, 4), "box_score": ("D", "T", 2)}
 _MONOCULAR_KEYS = {"global_orient": ("T", 2, 3), "hand_pose": ("T", 2, 15, 3), "transl": ("T", 2, 3), "valid": ("T", 2)}
 SCHEMAS = {"gt": _HAND_KEYS, "labels": _LABEL_KEYS, "keypoints": _KEYPOINT_KEYS, "monocular": _MONOCULAR_KEYS}
-_NAN_ALLOWED = {"keypoints": {"uv", "box"}, "labels": {"residual_px"}}  # NaN residual: hand not observed
+_NAN_ALLOWED = {"keypoints": {"uv", "box"}, "labels": {"residual_px"}}  # NaN: not detected / not observed
+_UNIT_INTERVAL = {"keypoints": ("conf", "box_score")}
 
 
 class ClipFormatError(ValueError):
@@ -46,10 +49,8 @@ class ClipFormatError(ValueError):
 def save_npz(path: str | pathlib.Path, **arrays) -> pathlib.Path:
     """Write a compressed npz atomically (a temporary file, then a rename)."""
     path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
     return path
 
 
@@ -62,8 +63,8 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
     try:
         with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as err:
-        raise ClipFormatError(f"{path} is truncated or not an npz file ({type(err).__name__}: {err})") from err
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as err:  # zlib: a damaged deflate stream
+        raise ClipFormatError(f"{path} is truncated, damaged or not an npz file ({type(err).__name__}: {err})") from err
     missing = [k for k in schema if k not in arrays]
     if missing:
         raise ClipFormatError(f"{path}: keys {missing} are missing for a {kind} file (found {sorted(arrays)})")
@@ -78,8 +79,18 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
                     raise ClipFormatError(f"{path}: {key} has shape {shape}; {want} is {sizes[want]} elsewhere in the file")
             elif dim != want:
                 raise ClipFormatError(f"{path}: {key} has shape {shape}, expected {_format(spec)}")
+        if arrays[key].dtype.kind not in "biuf":
+            raise ClipFormatError(f"{path}: {key} must hold numbers, got dtype {arrays[key].dtype}")
         if arrays[key].dtype.kind == "f" and key not in _NAN_ALLOWED.get(kind, ()) and not np.all(np.isfinite(arrays[key])):
             raise ClipFormatError(f"{path}: {key} contains NaN or infinite values")
+    for key in _UNIT_INTERVAL.get(kind, ()):
+        values = arrays[key][np.isfinite(arrays[key])] if arrays[key].dtype.kind == "f" else arrays[key]
+        outside = (values < 0) | (values > 1)
+        if np.any(outside):
+            raise ClipFormatError(
+                f"{path}: {key} must lie in [0, 1]; {int(outside.sum())} values do not "
+                f"(from {values.min():g} to {values.max():g})"
+            )
     for key in ("onscreen", "valid"):
         if key in arrays:
             arrays[key] = arrays[key].astype(bool)
@@ -91,24 +102,23 @@ def _format(spec) -> str:
 
 
 def read_meta(clip_dir: str | pathlib.Path) -> dict:
-    """`meta.json` of a clip: at least fps and num_frames."""
+    """`meta.json` of a clip: an object with at least `fps` (a positive finite number)
+    and `num_frames` (a positive whole number), checked here, at the edge."""
     path = pathlib.Path(clip_dir) / "meta.json"
     meta = read_json(path, ClipFormatError)
     for key in ("fps", "num_frames"):
         if key not in meta:
             raise ClipFormatError(f"{path}: '{key}' is missing")
-    if not meta["fps"] > 0:
-        raise ClipFormatError(f"{path}: fps must be positive, got {meta['fps']}")
+    fps, frames = meta["fps"], meta["num_frames"]
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+        raise ClipFormatError(f"{path}: fps must be a positive finite number, got {fps!r}")
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise ClipFormatError(f"{path}: num_frames must be a positive whole number, got {frames!r}")
     return meta
 
 
 def write_meta(clip_dir: str | pathlib.Path, **meta) -> pathlib.Path:
-    path = pathlib.Path(clip_dir) / "meta.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(".meta.json.tmp")
-    tmp.write_text(json.dumps(meta, indent=1))
-    tmp.replace(path)
-    return path
+    return write_json(pathlib.Path(clip_dir) / "meta.json", meta)
 
 
 def hand_file(root: str | pathlib.Path, side: str, kind: str) -> pathlib.Path:
@@ -116,6 +126,30 @@ def hand_file(root: str | pathlib.Path, side: str, kind: str) -> pathlib.Path:
     if side not in SIDES:
         raise ValueError(f"side must be one of {SIDES}, got {side!r}")
     return pathlib.Path(root) / "hands" / side / f"{kind}.npz"
+
+
+def clip_digest(clip_dir: str | pathlib.Path) -> str:
+    """sha256 (hex) of what a clip's labels are made from: the bytes of `rig.json` and
+    every hand's keypoints arrays (names, dtypes, shapes, values). Labels record it
+    (`meta.json` `"source_clip"`), so an evaluation can tell the clip they belong to
+    from another clip of the same folder name."""
+    clip_dir = pathlib.Path(clip_dir)
+    digest = hashlib.sha256()
+    try:
+        digest.update((clip_dir / "rig.json").read_bytes())
+    except OSError as err:
+        raise ClipFormatError(f"cannot read {clip_dir / 'rig.json'}: {err.strerror or err}") from err
+    for side in SIDES:
+        path = hand_file(clip_dir, side, "keypoints")
+        if not path.is_file():
+            continue
+        arrays = load_npz(path, "keypoints")
+        digest.update(side.encode())
+        for key in sorted(arrays):
+            a = np.ascontiguousarray(arrays[key])
+            digest.update(f"{key}:{a.dtype.str}:{a.shape}".encode())
+            digest.update(a.tobytes())
+    return digest.hexdigest()
 
 
 def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:

@@ -1,15 +1,113 @@
-"""Small file helpers shared by the loaders (one place for their error messages)."""
+"""Small file helpers shared by the loaders and writers (one place for their error
+messages, their atomic writes and their output-folder checks)."""
 
+import contextlib
+import fcntl
+import glob
 import json
+import math
+import os
 import pathlib
+import shutil
+import uuid
+from collections.abc import Iterator
+
+import numpy as np
 
 
 def read_json(path: str | pathlib.Path, error: type[ValueError] = ValueError) -> dict:
-    """Parse a JSON file, raising `error` that names the file and what is wrong."""
+    """Parse a JSON file holding an object (every JSON file of the project does), raising
+    `error` that names the file and what is wrong."""
     path = pathlib.Path(path)
     try:
-        return json.loads(path.read_text())
+        value = json.loads(path.read_text())
     except OSError as err:
         raise error(f"cannot read {path}: {err.strerror or err}") from err
-    except json.JSONDecodeError as err:
-        raise error(f"{path} is not valid JSON ({err.msg} at line {err.lineno})") from err
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        where = f"{err.msg} at line {err.lineno}" if isinstance(err, json.JSONDecodeError) else "not UTF-8 text"
+        raise error(f"{path} is not valid JSON ({where})") from err
+    if not isinstance(value, dict):
+        raise error(f"{path} must hold a JSON object, not a {type(value).__name__}")
+    return value
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | pathlib.Path) -> Iterator[pathlib.Path]:
+    """A fresh temporary path beside `path` (same suffix, unique to this writer); renamed
+    onto `path` when the block succeeds, removed when it fails. Readers never see a
+    half-written file, and two writers never share a temporary file."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def strict_json(value):
+    """`value` with numpy scalars and arrays as Python numbers and lists, and every NaN or
+    infinity as None: what strict JSON (RFC 8259) can carry."""
+    if isinstance(value, dict):
+        return {str(k): strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return strict_json(value.tolist())
+    if isinstance(value, (np.bool_, bool)):
+        return bool(value)
+    if isinstance(value, (np.integer, int)):
+        return int(value)
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
+def write_json(path: str | pathlib.Path, value, *, indent: int = 1) -> pathlib.Path:
+    """Write strict JSON atomically (NaN and infinities as null)."""
+    path = pathlib.Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(strict_json(value), indent=indent, allow_nan=False))
+    return path
+
+
+@contextlib.contextmanager
+def exclusive_lock(path: str | pathlib.Path, *, wait: bool = True) -> Iterator[bool]:
+    """An exclusive advisory lock (POSIX `flock`) on the file `path` (created if needed),
+    held for the block and released when it ends or the process dies. Yields True when
+    held; False at once when `wait` is False and another holder (process or thread) has it.
+    The lock file stays: removing it would let a third writer lock a fresh file."""
+    with open(path, "a+b") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def remove_stale_partials(parent: pathlib.Path, name: str) -> None:
+    """Remove `parent/.<name>.partial-*` folders left by interrupted writers of `name`
+    (call it holding `name`'s lock: nobody else is writing one)."""
+    for stale in parent.glob(glob.escape(f".{name}.partial") + "*"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
+def check_out_dir(path: str | pathlib.Path, what: str = "--out") -> pathlib.Path:
+    """Create the output folder `path` if needed and check that it can be written, before
+    any long work starts; a `ValueError` names the problem (a file, not writable)."""
+    path = pathlib.Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{what} {path} is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".write-test.{uuid.uuid4().hex[:12]}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise ValueError(f"{what} {path} cannot be written: {err.strerror or err}") from err
+    return path

@@ -329,12 +329,15 @@ def bootstrap(scores, key: PRNGKeyArray, n: int = 2000, *, mask=None, level: flo
     Returns the mean of the scores, the standard deviation of the resampled means and
     the percentile interval at `level`, or None when no clip has data. Reproducible
     from `key`. `mask` (or NaN scores) drops clips without data before resampling.
+    One clip has no spread to resample: its std and interval are NaN (unknown), not 0.
     """
     values = np.asarray(scores, dtype=np.float64).reshape(-1)
     keep = np.isfinite(values) if mask is None else (np.asarray(mask, bool).reshape(-1) & np.isfinite(values))
     values = values[keep]
     if values.size == 0:
         return None
+    if values.size == 1:
+        return Bootstrap(float(values[0]), math.nan, math.nan, math.nan, 1, n)
     idx = jax.random.randint(key, (n, values.size), 0, values.size)
     means = values[np.asarray(idx)].mean(axis=1)
     lo, hi = np.quantile(means, [(1 - level) / 2, 1 - (1 - level) / 2])

@@ -13,11 +13,14 @@ import functools
 import json
 import pathlib
 import shutil
+import tempfile
+import time
 
 import numpy as np
 
 from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
+from esther_jax.files import check_out_dir, exclusive_lock, remove_stale_partials, write_json
 
 from .pipeline import LabelConfig, label_hands
 
@@ -55,30 +58,46 @@ def label_clip(
 
     The labels record which model they are parameters of: `meta.json` gets
     `"mano_model": {side: {"id": mano.model_id(model), "source": ...}}` for the labelled
-    sides, and each hand's `quality.json` its own `"mano_model"` entry.
+    sides, and each hand's `quality.json` its own `"mano_model"` entry. `meta.json` also
+    records the clip they were made from, `"source_clip": {"name", "digest"}`
+    (`clips.clip_digest`), which `esther evaluate` checks.
+
+    The clip is labelled under an exclusive lock (`out_dir/.<clip>.lock`): a second
+    process (or thread) labelling the same clip into the same folder waits for it.
     """
     clip_dir, out_dir = pathlib.Path(clip_dir), pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with _clip_lock(out_dir, clip_dir.name, wait=True):
+        return _label_locked(clip_dir, out_dir, config, rejects, models, model_sources)
+
+
+def _clip_lock(out_dir: pathlib.Path, name: str, *, wait: bool):
+    """The lock of one clip's labels: `out_dir/.<name>.lock`."""
+    return exclusive_lock(out_dir / f".{name}.lock", wait=wait)
+
+
+def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources) -> dict:
+    """`label_clip` with the clip's lock held: nobody else writes `out_dir/<clip>`."""
     meta = clips.read_meta(clip_dir)
     rig = StereoRig.from_json(clip_dir / "rig.json")
     sides = [s for s in clips.SIDES if clips.hand_file(clip_dir, s, "keypoints").is_file()]
     if not sides:
         raise clips.ClipFormatError(f"{clip_dir} has no hands/<side>/keypoints.npz")
+    remove_stale_partials(out_dir, clip_dir.name)  # left by an interrupted run (we hold the lock)
     final = out_dir / clip_dir.name
-    tmp = out_dir / f".{clip_dir.name}.partial"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{clip_dir.name}.partial-", dir=out_dir))
     summary = {"clip": clip_dir.name, "hands": {}}
     try:
+        source = {"name": clip_dir.name, "digest": clips.clip_digest(clip_dir)}
         _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary)
-    except BaseException:
+        # replaces any "mano_model" of the input clip's meta (that one describes its gt.npz)
+        recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
+        clips.write_meta(tmp, **{**meta, "labelled_by": "esther teacher", "mano_model": recorded, "source_clip": source})
+        if final.exists():
+            shutil.rmtree(final)
+        tmp.rename(final)
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)  # a failed clip leaves nothing behind
-        raise
-    # replaces any "mano_model" of the input clip's meta (that one describes its gt.npz)
-    recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
-    clips.write_meta(tmp, **{**meta, "labelled_by": "esther teacher", "mano_model": recorded})
-    if final.exists():
-        shutil.rmtree(final)
-    tmp.rename(final)
     return summary
 
 
@@ -105,6 +124,11 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sourc
     keypoints, hand_models, records, monocular = {}, {}, {}, {}
     for side in sides:
         keypoints[side] = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
+        frames = keypoints[side]["uv"].shape[1]
+        if frames != meta["num_frames"]:
+            raise clips.ClipFormatError(
+                f"{clip_dir}: meta.json says num_frames = {meta['num_frames']}, but hands/{side}/keypoints.npz has {frames} frames"
+            )
         hand_models[side], records[side] = _hand_model(side, models, sources)
         mono_path = clips.hand_file(clip_dir, side, "monocular")
         monocular[side] = clips.load_npz(mono_path, "monocular") if mono_path.is_file() else None
@@ -120,7 +144,7 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sourc
             labels["valid"][rejected] = False
             report["human_rejected_frames"] = sorted(rejected)
         clips.save_npz(clips.hand_file(tmp, side, "labels"), **labels)
-        (tmp / "hands" / side / "quality.json").write_text(json.dumps(report, indent=1, default=float))
+        write_json(tmp / "hands" / side / "quality.json", report)
         summary["hands"][side] = {
             "frames": len(labels["valid"]),
             "valid": int(labels["valid"].sum()),
@@ -141,35 +165,69 @@ def label_clips(
     models: dict[str, mano.ManoModel] | None = None,
     model_sources: dict[str, str] | None = None,
 ) -> dict:
-    """Label many clips; failures are collected, not raised.
+    """Label many clips; per-clip failures are collected, not raised.
 
     `models` / `model_sources` as in `label_clip` (checked once, before any clip). With
     `resume`, a clip is skipped only when its finished labels are of the same models
     (the `mano_model` ids of its `meta.json`; labels that record none are of the built-in
     hand); labels of other models are redone.
+
+    Safe to run twice at once on one `out_dir`: each clip is labelled under its own lock;
+    a clip another process is labelling is put back and taken last (waiting for the
+    lock), and skipped then if that process finished it with the same models after this
+    run began. Raises ValueError before any work when `out_dir` cannot be written, when
+    two clips share a folder name (their labels would overwrite each other) or when
+    `clip_dirs` is empty.
     """
     from tqdm import tqdm
 
     unknown = set(models or {}) - set(clips.SIDES)
     if unknown:
         raise ValueError(f"models has unknown sides {sorted(unknown)}; use {clips.SIDES}")
+    clip_dirs = [pathlib.Path(c) for c in clip_dirs]
+    if not clip_dirs:
+        raise ValueError("no clip to label (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)")
+    by_name: dict[str, list[pathlib.Path]] = {}
+    for clip in clip_dirs:
+        by_name.setdefault(clip.name, []).append(clip)
+    clashes = {name: paths for name, paths in by_name.items() if len(set(p.resolve() for p in paths)) > 1}
+    if clashes:
+        name, paths = next(iter(clashes.items()))
+        raise ValueError(
+            f"{len(clashes)} clip names are used by more than one folder, e.g. {name!r}: {', '.join(map(str, paths))}; "
+            "their labels would overwrite each other in --out: rename them or label them into different folders"
+        )
+    clip_dirs = list(dict.fromkeys(clip_dirs))
     wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
-    out_dir = pathlib.Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = check_out_dir(out_dir)
+    started = time.time()
     done, skipped, failed = [], [], []
     frames, seconds = 0, 0.0
-    for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="label", unit="clip", disable=not progress):
-        if resume and _labelled_with(out_dir / clip.name / "meta.json", wanted):
-            skipped.append(clip.name)
-            continue
-        try:
-            summary = label_clip(clip, out_dir, config, rejects, models, model_sources)
-        except (ValueError, OSError) as err:  # bad files, degenerate rigs: report and go on
-            failed.append({"clip": str(clip), "error": str(err)})
-            continue
+
+    def attempt(clip: pathlib.Path, *, wait: bool) -> bool:
+        """Label `clip` (or skip it); False when another process holds it and `wait` is False."""
+        nonlocal frames, seconds
+        meta_path = out_dir / clip.name / "meta.json"
+        with _clip_lock(out_dir, clip.name, wait=wait) as locked:
+            if not locked:
+                return False
+            finished = _labelled_with(meta_path, wanted)
+            if finished and (resume or (wait and meta_path.stat().st_mtime >= started)):
+                skipped.append(clip.name)  # done before (--resume), or by the other process just now
+                return True
+            try:
+                summary = _label_locked(clip, out_dir, config, rejects, models, model_sources)
+            except Exception as err:  # a bad clip never stops the batch: report it and go on
+                failed.append({"clip": str(clip), "error": f"{type(err).__name__}: {err}"})
+                return True
         done.append(summary)
         frames += sum(h["frames"] for h in summary["hands"].values())
         seconds += sum(h["seconds"] for h in summary["hands"].values())
+        return True
+
+    busy = [clip for clip in tqdm(clip_dirs, desc="label", unit="clip", disable=not progress) if not attempt(clip, wait=False)]
+    for clip in busy:  # another process holds them: wait, then skip what it finished
+        attempt(clip, wait=True)
     return {"labelled": done, "skipped": skipped, "failed": failed, "hand_frames": frames, "seconds": seconds}
 
 

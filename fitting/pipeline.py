@@ -76,6 +76,23 @@ def traced_rig(rig: StereoRig) -> StereoRig:
     return StereoRig(strip(rig.left), strip(rig.right), rig.T_left_right, "rig")
 
 
+FAR_OUTSIDE = 0.5
+"""Detections farther outside the image than this fraction of its width (height) are not
+observations: a detector extrapolates a cut-off hand's joints a little beyond the border,
+never by half an image."""
+
+
+def far_outside_image(rig: StereoRig, uv: np.ndarray) -> np.ndarray:
+    """Which detections `uv [..., 2 views, 21, 2]` (pixels) lie far outside their view's
+    image (`FAR_OUTSIDE`); NaN pixels count as not far (they are missing already)."""
+    size = np.array([[rig.left.width, rig.left.height], [rig.right.width, rig.right.height]], np.float64)  # (2 views, 2)
+    lo, hi = -FAR_OUTSIDE * size - 0.5, (1.0 + FAR_OUTSIDE) * size - 0.5
+    uv = np.asarray(uv, np.float64)
+    with np.errstate(invalid="ignore"):
+        far = (uv < lo[:, None, :]) | (uv > hi[:, None, :])
+    return np.any(far, axis=-1)
+
+
 def check_keypoints(keypoints: dict, fps: float) -> tuple[int, int]:
     """Validate a keypoints.npz dictionary at the edge; returns (D, T)."""
     for key in ("uv", "conf", "box", "box_score"):
@@ -93,8 +110,16 @@ def check_keypoints(keypoints: dict, fps: float) -> tuple[int, int]:
     if D < 1 or T < 1:
         raise ValueError(f"keypoints need at least one detector and one frame, got D = {D}, T = {T}")
     for k in expected | {"uv": None}:
-        if not np.issubdtype(np.asarray(keypoints[k]).dtype, np.number):
-            raise ValueError(f"keypoints {k} must be numeric, got dtype {np.asarray(keypoints[k]).dtype}")
+        if np.asarray(keypoints[k]).dtype.kind not in "biuf":
+            raise ValueError(f"keypoints {k} must be real numbers, got dtype {np.asarray(keypoints[k]).dtype}")
+    for k in ("conf", "box_score"):
+        values = np.asarray(keypoints[k], np.float64)
+        outside = np.isfinite(values) & ((values < 0) | (values > 1))
+        if outside.any():
+            raise ValueError(
+                f"keypoints {k} must lie in [0, 1]; {int(outside.sum())} values do not "
+                f"(from {values[outside].min():g} to {values[outside].max():g})"
+            )
     if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive finite number, got {fps!r}")
     return D, T
@@ -165,7 +190,9 @@ def label_hand(
     L = bucket_length(T)
     dtype = jnp.result_type(float)
     pad = lambda x: np.pad(np.asarray(x, np.float64), [(0, 0), (0, L - T)] + [(0, 0)] * (np.ndim(x) - 2))  # noqa: E731
+    far = far_outside_image(rig, keypoints["uv"])
     host = {k: pad(keypoints[k]) for k in ("uv", "conf", "box", "box_score")}
+    host["conf"][:, :T][far] = 0.0  # not observations
     mono_orient, mono_pose, mono_has = np.zeros((L, 3)), np.zeros((L, 15, 3)), np.zeros(L, bool)
     if monocular is not None:
         orient, pose, has = ev.monocular_average(rig, monocular)
@@ -220,6 +247,7 @@ def label_hand(
              wrist_monocular=init.wrist_monocular)
     )  # fmt: skip
     timings["labels_s"] = time.perf_counter() - t4
+    out["far_outside"] = int(far.sum())
     return _package(out, T, model, mono_has, config, timings, has_shape)
 
 
@@ -245,6 +273,8 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
     notes = []
     if out["num_invalid"]:
         notes.append(f"{int(out['num_invalid'])} detections had NaN or infinite values and were treated as missing")
+    if out["far_outside"]:
+        notes.append(f"{out['far_outside']} keypoints lay far outside the image (beyond {FAR_OUTSIDE:g} of its size) and were treated as missing")
     if not observed.any():
         notes.append("the hand is never detected in either view: no label (all frames invalid)")
     elif bool(out["from_mono"]) and has_shape:

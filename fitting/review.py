@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from esther_jax.cameras import StereoRig
+from esther_jax.files import atomic_output
 from esther_jax.mano import KEYPOINT_PARENTS
 
 _FINGER_COLOURS = [(255, 255, 255)] + [(230, 80, 80)] * 4 + [(240, 200, 60)] * 4 + [(80, 200, 90)] * 4 + [(70, 150, 240)] * 4 + [(200, 90, 220)] * 4
@@ -63,9 +64,8 @@ def contact_sheet(tiles: list[list[np.ndarray]], captions: list[str], path: str 
         rows.append(row)
     sheet = np.concatenate(rows, axis=0)
     path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    cv2.imwrite(str(tmp), sheet[..., ::-1])
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        cv2.imwrite(str(tmp), sheet[..., ::-1])
     return path
 
 

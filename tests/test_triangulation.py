@@ -186,13 +186,14 @@ def test_real_quest3_landmarks_triangulate(shared_data, x64):
         cams[name] = Fisheye624Camera.from_params(c["params"], *c["image_size"])
         T_device[name] = np.asarray(c["T_device_camera"])
     stacked = jax.tree.map(lambda a, b: jnp.stack([a, b]), cams["camera-slam-left"], cams["camera-slam-right"])
+    triangulate_landmarks = jax.jit(jax.vmap(triangulate, in_axes=(None, None, 0, None)))
     errors = []
     for frame in data["frames"]:
         T_world_device = np.asarray(frame["T_world_device"])
         T_world_cams = jnp.asarray(np.stack([T_world_device @ T_device[n] for n in cams]))
         for hand in frame["hands"].values():
             uv = np.stack([np.asarray(hand["pixels"][n]) for n in cams], axis=1)  # (21, 2, 2)
-            r = jax.vmap(triangulate, in_axes=(None, None, 0, None))(stacked, T_world_cams, jnp.asarray(uv), jnp.ones(2))
+            r = triangulate_landmarks(stacked, T_world_cams, jnp.asarray(uv), jnp.ones(2))
             assert np.all(np.asarray(r.valid))
             errors.append(np.linalg.norm(np.asarray(r.point) - np.asarray(hand["landmarks_world"]), axis=1))
     assert np.max(np.concatenate(errors)) < 2e-5

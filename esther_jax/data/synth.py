@@ -9,9 +9,9 @@ resumes where it stopped without redoing or corrupting finished clips.
 
 import dataclasses
 import functools
-import json
 import pathlib
 import shutil
+import tempfile
 import time
 
 import cv2
@@ -22,6 +22,7 @@ import numpy as np
 from .. import cameras, clips, mano
 from .. import crops as crop_lib
 from ..cameras import PinholeCamera, StereoRig
+from ..files import check_out_dir, exclusive_lock, read_json, remove_stale_partials, strict_json, write_json
 from . import detector, flow, motion, render
 
 CROP_SIZE = 224
@@ -208,10 +209,19 @@ def _inside_source(camera, crop: crop_lib.Crop) -> np.ndarray:
 def write_clip(clip: Clip, folder: str | pathlib.Path) -> pathlib.Path:
     """Write a clip folder atomically: built next to its destination, then renamed."""
     folder = pathlib.Path(folder)
-    tmp = folder.with_name(f".{folder.name}.partial")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
+    try:
+        _write_clip_files(clip, tmp)
+        if folder.exists():
+            shutil.rmtree(folder)
+        tmp.rename(folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return folder
+
+
+def _write_clip_files(clip: Clip, tmp: pathlib.Path) -> None:
     clip.rig.to_json(tmp / "rig.json")
     for side in clip.keypoints:
         clips.save_npz(clips.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
@@ -221,10 +231,6 @@ def write_clip(clip: Clip, folder: str | pathlib.Path) -> pathlib.Path:
     for view, frames in clip.videos.items():
         _write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
     clips.write_meta(tmp, **clip.meta)
-    if folder.exists():
-        shutil.rmtree(folder)
-    tmp.rename(folder)
-    return folder
 
 
 def _write_video(path: pathlib.Path, frames: np.ndarray, fps: float) -> None:
@@ -288,22 +294,61 @@ def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
 
 
 def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = SynthConfig(), seed: int = 0, progress: bool = True) -> dict:
-    """Make `num_clips` clips under `out` (resuming: finished clips are kept as they are)."""
+    """Make `num_clips` clips under `out` (resuming: finished clips are kept as they are).
+
+    `out/synth.json` records the settings (config and seed) every clip of the folder was
+    made with; it is written before the first clip. A folder made with other settings
+    (or holding clips without that record) is refused with a ValueError that says what
+    differs, so the record stays true: use another folder, or the same settings to add
+    clips or resume.
+    """
     from tqdm import tqdm
 
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_out_dir(out)
+    settings = strict_json({"config": _config_dict(cfg), "seed": seed})
+    record = out / "synth.json"
+    if record.exists():
+        previous = read_json(record)
+        differs = sorted(
+            [f"config.{k}" for k in settings["config"] if previous.get("config", {}).get(k) != settings["config"][k]]
+            + (["seed"] if previous.get("seed") != seed else [])
+        )  # fmt: skip
+        if differs:
+            first = differs[0]
+            old = previous.get("seed") if first == "seed" else previous.get("config", {}).get(first.split(".", 1)[1])
+            new = seed if first == "seed" else settings["config"][first.split(".", 1)[1]]
+            raise ValueError(
+                f"{out} holds clips made with other settings ({', '.join(differs)} differ; e.g. {first} was {old!r}, "
+                f"now {new!r}): use another --out, or the same settings to add or resume clips"
+            )
+    elif any(out.glob("clip_*")):
+        raise ValueError(f"{out} holds clips but no synth.json saying how they were made: use another --out")
+    else:
+        write_json(record, {**settings, "clips": 0})
     made, skipped = 0, 0
     t0 = time.perf_counter()
-    for index in tqdm(range(num_clips), desc="synth", unit="clip", disable=not progress):
-        folder = out / f"clip_{index:05d}"
-        if (folder / "meta.json").exists():  # complete: clips only appear by an atomic rename
-            skipped += 1
-            continue
-        write_clip(make_clip(seed, index, cfg), folder)
-        made += 1
+
+    def attempt(index: int, *, wait: bool) -> bool:
+        """Make clip `index` unless it is finished; False when another run holds it."""
+        nonlocal made, skipped
+        name = f"clip_{index:05d}"
+        with exclusive_lock(out / f".{name}.lock", wait=wait) as locked:
+            if not locked:
+                return False
+            if (out / name / "meta.json").exists():  # complete: clips only appear by an atomic rename
+                skipped += 1
+                return True
+            remove_stale_partials(out, name)
+            write_clip(make_clip(seed, index, cfg), out / name)
+            made += 1
+            return True
+
+    busy = [i for i in tqdm(range(num_clips), desc="synth", unit="clip", disable=not progress) if not attempt(i, wait=False)]
+    for index in busy:  # another run is making them: wait, then keep what it made
+        attempt(index, wait=True)
     summary = {"made": made, "skipped": skipped, "seconds": time.perf_counter() - t0, "out": str(out)}
-    (out / "synth.json").write_text(json.dumps({**summary, "config": _config_dict(cfg), "seed": seed}, indent=1))
+    finished = sum(1 for p in out.glob("clip_*") if (p / "meta.json").exists())
+    write_json(record, {**settings, "clips": finished, "last_run": summary})
     return summary
 
 

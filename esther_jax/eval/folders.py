@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import clips, metrics
+from ..files import atomic_output, check_out_dir, write_json
 from ..rotations import axis_angle_to_matrix, geodesic_angle
 from . import reports
 
@@ -96,6 +97,33 @@ def _incomparable(pred_model: dict | None, gt_model: dict | None) -> str | None:
     return None
 
 
+def _table_unit(name: str) -> tuple[float, str]:
+    """(scale from the stored unit, unit) of a metric in the tables: mm for distances."""
+    if name in _PARAM_METRICS:
+        return _PARAM_METRICS[name]
+    return (1.0, "m/s^2") if "jitter" in name else (1000.0, "mm")
+
+
+def _same_clip(labels_dir: pathlib.Path, clip_dir: pathlib.Path) -> bool:
+    """Whether labels record the clip they were made from (`meta.json` `"source_clip"`,
+    written by `esther label`): True when they do and it is `clip_dir`; False when they
+    record nothing (labels of another tool: scored, listed as unverified). Raises a
+    ValueError when they record another clip: scoring them would be meaningless."""
+    try:
+        source = json.loads((labels_dir / "meta.json").read_text()).get("source_clip")
+    except (OSError, ValueError, AttributeError):
+        return False
+    if not isinstance(source, dict) or "digest" not in source:
+        return False
+    if source["digest"] != clips.clip_digest(clip_dir):
+        raise ValueError(
+            f"the labels in {labels_dir} were made from another clip than {clip_dir} (clip '{source.get('name')}', "
+            f"digest {str(source['digest'])[:12]}..., while {clip_dir.name}'s rig.json and keypoints give "
+            f"{clips.clip_digest(clip_dir)[:12]}...): give --pred and --gt folders of the same clips"
+        )
+    return True
+
+
 def evaluate_hand(pred: dict, gt: dict, fps: float, *, parameters: bool = False) -> dict:
     """Per-clip scores of one hand (metres, m/s^2) and the frames they used.
 
@@ -144,8 +172,8 @@ def evaluate_folders(
     """
     if parameters not in PARAMETER_MODES:
         raise ValueError(f"parameters must be one of {PARAMETER_MODES}, got {parameters!r}")
-    pred_root, out_dir = pathlib.Path(pred_root), pathlib.Path(out_dir)
-    per_clip, missing, compared, not_compared = [], [], [], []
+    pred_root, out_dir = pathlib.Path(pred_root), check_out_dir(out_dir)
+    per_clip, missing, compared, not_compared, unverified = [], [], [], [], []
     all_errors, z_pred, z_gt = [], [], []
     for clip in clips.list_clips(gt_root):
         fps = float(clips.read_meta(clip)["fps"])
@@ -158,6 +186,8 @@ def evaluate_folders(
                 missing.append(f"{clip.name}/{side}")
                 continue
             hand = f"{clip.name}/{side}"
+            if not _same_clip(pred_root / clip.name, clip):
+                unverified.append(clip.name)
             reason = None if parameters == "skip" else _incomparable(_recorded_model(pred_root / clip.name, side), _recorded_model(clip, side))
             if reason is not None and parameters == "require":
                 raise ValueError(
@@ -174,6 +204,7 @@ def evaluate_folders(
             all_errors.append(result["joint_errors_p"].reshape(-1))
             z_pred.append(result["wrist_z"][0])
             z_gt.append(result["wrist_z"][1])
+    unverified = list(dict.fromkeys(unverified))
     if not per_clip:
         raise ValueError(f"no prediction in {pred_root} matches a ground-truth hand in {gt_root} (missing: {missing[:5]})")
 
@@ -184,12 +215,17 @@ def evaluate_folders(
         values = np.asarray([c.get(name, (np.nan, 0))[0] for c in per_clip])
         has = np.asarray([c.get(name, (np.nan, 0))[1] > 0 for c in per_clip])
         b = metrics.bootstrap(values, jax.random.fold_in(key, i), n=num_resamples, mask=has)
-        scale = 1.0 if "jitter" in name else _PARAM_METRICS[name][0] if name in _PARAM_METRICS else 1000.0
-        record = reports.Record.from_bootstrap(method, condition, name, b, scale)
-        if name in _PARAM_METRICS:
-            record = dataclasses.replace(record, unit=_PARAM_METRICS[name][1])
+        scale, unit = _table_unit(name)
+        record = dataclasses.replace(reports.Record.from_bootstrap(method, condition, name, b, scale), unit=unit)
         records.append(record)
         summary[name] = {k: getattr(record, k) for k in ("value", "std", "ci_low", "ci_high", "unit", "num_clips")}
+    # per hand, in the summary's units; a hand with no scored frame has null scores
+    per_hand = [
+        {"clip": c["clip"], "side": c["side"], "coverage": c["coverage"],
+         "scores": {name: {"value": c[name][0] * _table_unit(name)[0] if c[name][1] > 0 else None,
+                           "unit": _table_unit(name)[1], "frames": c[name][1]} for name in names if name in c}}
+        for c in per_clip
+    ]  # fmt: skip
     errors = np.concatenate(all_errors) if all_errors else np.zeros(0)
     z_pred_all, z_gt_all = np.concatenate(z_pred), np.concatenate(z_gt)
     scatter = metrics.depth_scatter(jnp.asarray(z_pred_all), jnp.asarray(z_gt_all))
@@ -218,13 +254,12 @@ def evaluate_folders(
             "not_compared": not_compared,
         },
         "depth_scatter": {k: float(getattr(scatter, k)) for k in ("slope", "intercept", "correlation", "systematic_mm", "random_mm", "rmse_mm", "count")},
-        "per_clip": per_clip,
+        "identity_unverified": unverified,
+        "per_clip": per_hand,
         "figures": figures,
     }
-    tmp = out_dir / ".metrics.json.tmp"
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(out_dir / "metrics.json")
-    table = reports.markdown_table(records)
-    (out_dir / "table.md").write_text(table)
+    write_json(out_dir / "metrics.json", result)
+    with atomic_output(out_dir / "table.md") as tmp:
+        tmp.write_text(reports.markdown_table(records))
     reports.write_csv(records, out_dir / "table.csv")
     return result

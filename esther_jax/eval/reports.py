@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..files import atomic_output  # noqa: E402
 from ..metrics import Bootstrap, DepthScatter  # noqa: E402
 
 METRIC_LABELS = {
@@ -43,18 +44,17 @@ class Record:
         unit = METRIC_LABELS.get(metric, (metric, ""))[1]
         if b is None:
             return cls(method, condition, metric, float("nan"), unit=unit)
-        return cls(method, condition, metric, b.mean * scale, b.std * scale, b.ci_low * scale, b.ci_high * scale, unit, b.num_clips)
+        spread = [None if not np.isfinite(v) else v * scale for v in (b.std, b.ci_low, b.ci_high)]  # one clip: unknown
+        return cls(method, condition, metric, b.mean * scale, *spread, unit, b.num_clips)
 
 
 def write_csv(records: list[Record], path: str | pathlib.Path) -> pathlib.Path:
     path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as f:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[field.name for field in dataclasses.fields(Record)])
         writer.writeheader()
         for r in records:
             writer.writerow(dataclasses.asdict(r))
-    tmp.replace(path)
     return path
 
 
@@ -72,7 +72,7 @@ def markdown_table(records: list[Record], columns: tuple[str, ...] = PAPER_COLUM
             if r is None or not np.isfinite(r.value):
                 cells.append("no data")
             elif r.std is None:
-                cells.append(f"{r.value:.2f}")
+                cells.append(f"{r.value:.2f} ± n/a")  # one clip: no interval
             else:
                 cells.append(f"{r.value:.2f} ± {r.std:.2f}")
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
@@ -80,10 +80,9 @@ def markdown_table(records: list[Record], columns: tuple[str, ...] = PAPER_COLUM
 
 
 def _save(fig, path: pathlib.Path) -> pathlib.Path:
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(path)
     return path
 
 

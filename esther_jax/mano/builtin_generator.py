@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
+from ..files import atomic_output
 from .constants import (
     FINGER_CHAINS,
     FINGER_ORDER,
@@ -628,10 +629,8 @@ def write(path: pathlib.Path = ASSET_PATH) -> pathlib.Path:
     arrays = generate()
     stored = {k: (v.astype(np.float32) if v.dtype == np.float64 else v) for k, v in arrays.items()}
     stored["generator_version"] = np.asarray(GENERATOR_VERSION)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, **stored)
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        np.savez_compressed(tmp, **stored)
     return path
 
 

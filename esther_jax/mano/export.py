@@ -6,6 +6,7 @@ import numpy as np
 import trimesh
 from jaxtyping import Array, Float, Int
 
+from ..files import atomic_output
 from .model import ManoModel, ManoOutput
 
 
@@ -26,7 +27,6 @@ def export_mesh(model: ManoModel, output: ManoOutput, path: str | pathlib.Path) 
     if output.vertices.ndim != 2:
         raise ValueError(f"export one hand at a time; got vertices of shape {output.vertices.shape}")
     mesh = to_trimesh(output.vertices, model.faces)
-    tmp = path.with_name(f".{path.name}.tmp")
-    mesh.export(tmp, file_type=suffix)
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        mesh.export(tmp, file_type=suffix)
     return path

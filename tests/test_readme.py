@@ -1,0 +1,29 @@
+"""The README's code runs as written: its Python blocks in order, in a folder holding
+the clip its text says to make (`esther synth --out clips --clips 1 --frames 16 --crops`)."""
+
+import pathlib
+import re
+
+import pytest
+
+README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+
+
+@pytest.mark.slow
+def test_readme_python_blocks_run_on_a_synthetic_clip(tmp_path, monkeypatch, capsys):
+    from esther_jax import cli
+
+    text = README.read_text()
+    command = "esther synth --out clips --clips 1 --frames 16 --crops"
+    assert command in text
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(command.split()[1:]) == 0
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(blocks) >= 4
+    namespace: dict = {}
+    for number, block in enumerate(blocks, 1):
+        exec(compile(block, f"README.md python block {number}", "exec"), namespace)  # noqa: S102
+    assert namespace["labels"]["joints"].shape == (16, 21, 3)
+    assert namespace["pred"].joints.shape == (1, 16, 21, 3)
+    assert bool(namespace["tri"].valid)
+    assert "21.9M" in text and "M" in capsys.readouterr().out
