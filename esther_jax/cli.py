@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
     args = parser.parse_args(argv)
-    try:  # before minutes of work: the output folder must be a writable folder
+    try:  # before minutes of work: the output folder (every command has one) must be a writable folder
         check_out_dir(args.out)
     except ValueError as err:
         print(f"esther {args.command}: {err}", file=sys.stderr)

@@ -184,6 +184,7 @@ def label_clips(
     unknown = set(models or {}) - set(clips.SIDES)
     if unknown:
         raise ValueError(f"models has unknown sides {sorted(unknown)}; use {clips.SIDES}")
+    wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
     clip_dirs = [pathlib.Path(c) for c in clip_dirs]
     if not clip_dirs:
         raise ValueError("no clip to label (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)")
@@ -198,7 +199,6 @@ def label_clips(
             "their labels would overwrite each other in --out: rename them or label them into different folders"
         )
     clip_dirs = list(dict.fromkeys(clip_dirs))
-    wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
     out_dir = check_out_dir(out_dir)
     started = time.time()
     done, skipped, failed = [], [], []

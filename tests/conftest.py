@@ -41,3 +41,12 @@ def shared_data():
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is not present")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop each module's compiled programs when it ends: a worker runs many modules, and
+    their executables otherwise accumulate (several GB). What a later module needs again
+    comes back from the persistent compilation cache."""
+    yield
+    jax.clear_caches()

@@ -118,11 +118,12 @@ def test_jacobians_match_finite_differences(x64, at_zero):
     base = mano.ManoParams.zeros(dtype=jnp.float64) if at_zero else random_params(3, jnp.float64)
     flat, unravel = ravel_pytree(base)
 
+    @jax.jit
     def f(x):
         return mano.forward_joints(model, unravel(x)).reshape(-1)
 
-    jf = np.asarray(jax.jacfwd(f)(flat))
-    jr = np.asarray(jax.jacrev(f)(flat))
+    jf = np.asarray(jax.jit(jax.jacfwd(f))(flat))
+    jr = np.asarray(jax.jit(jax.jacrev(f))(flat))
     fd = finite_difference_jacobian(f, np.asarray(flat), h=1e-6)
     assert np.all(np.isfinite(jf))
     np.testing.assert_allclose(jf, jr, atol=1e-10)

@@ -56,8 +56,11 @@ def random_clip(key, cfg=TINY, frames=FRAMES, features=False):
     )
 
 
-def run(net, clip, hand_model, **kw):
-    return eqx.filter_jit(lambda n, c, h: n(c, h, **kw))(net, clip, hand_model)
+@eqx.filter_jit
+def run(net, clip, hand_model, motion_mask=None):
+    """The forward pass, compiled once per network structure and input shapes (shared by
+    the tests of this module)."""
+    return net(clip, hand_model, motion_mask=motion_mask)
 
 
 def assert_finite_output(out, frames):
@@ -246,17 +249,17 @@ def test_mirror_clip_geometry_and_involution():
 def test_left_hand_path_is_the_mirrored_right_hand_path(tiny_net, hand_model):
     clip = random_clip(jax.random.key(1))
     batch = jax.tree.map(lambda x: x[None], clip)
-    right = M.predict(tiny_net, batch, hand_model)
-    left = M.predict(tiny_net, M.mirror_clip(batch), hand_model, is_right=False)
-    # the left prediction on the mirrored clip is the right prediction, mirrored into its frame
-    expected = M.unmirror(jax.tree.map(lambda x: x[0], right), M.mirror_clip(clip).T_rig_cams)
-    np.testing.assert_allclose(left.joints[0], expected.joints, atol=1e-4)
-    np.testing.assert_allclose(left.params.transl[0], expected.params.transl, atol=1e-4)
-    np.testing.assert_array_equal(left.emitted, right.emitted)
+    # one batch: the clip as a right hand, its mirror image as a left hand
     mixed = M.predict(tiny_net, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), batch, M.mirror_clip(batch)),
                       hand_model, is_right=np.array([True, False]))  # fmt: skip
-    np.testing.assert_allclose(mixed.joints[0], right.joints[0], atol=1e-5)
-    np.testing.assert_allclose(mixed.joints[1], left.joints[0], atol=1e-5)
+    right, left = (jax.tree.map(lambda x, i=i: x[i], mixed) for i in range(2))
+    direct = run(tiny_net, clip, hand_model)  # a right hand goes straight through
+    np.testing.assert_allclose(right.joints, direct.joints, atol=1e-5)
+    # the left prediction on the mirrored clip is the right prediction, mirrored into its frame
+    expected = M.unmirror(right, M.mirror_clip(clip).T_rig_cams)
+    np.testing.assert_allclose(left.joints, expected.joints, atol=1e-4)
+    np.testing.assert_allclose(left.params.transl, expected.params.transl, atol=1e-4)
+    np.testing.assert_array_equal(left.emitted, right.emitted)
     assert mixed.emitted.dtype == bool
     np.testing.assert_array_equal(mixed.emitted, mixed.onscreen_prob > 0.5)
 
@@ -295,9 +298,8 @@ def test_jit_and_vmap_agree_with_single_calls(tiny_net, hand_model):
     clips = [random_clip(jax.random.key(k)) for k in (1, 2)]
     batch = jax.tree.map(lambda *x: jnp.stack(x), *clips)
     batched = eqx.filter_jit(jax.vmap(lambda c: tiny_net(c, hand_model)))(batch)
-    single_call = eqx.filter_jit(lambda c: tiny_net(c, hand_model))
     for i, clip in enumerate(clips):
-        single = single_call(clip)
+        single = run(tiny_net, clip, hand_model)
         for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(batched)):
             np.testing.assert_allclose(a, b[i], rtol=2e-4, atol=2e-5)
 

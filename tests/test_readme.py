@@ -26,4 +26,6 @@ def test_readme_python_blocks_run_on_a_synthetic_clip(tmp_path, monkeypatch, cap
     assert namespace["labels"]["joints"].shape == (16, 21, 3)
     assert namespace["pred"].joints.shape == (1, 16, 21, 3)
     assert bool(namespace["tri"].valid)
-    assert "21.9M" in text and "M" in capsys.readouterr().out
+    counts = namespace["M"].parameter_counts("paper")  # what the README says they are
+    assert f"{counts['image_encoder'] / 1e6:.1f}M / {counts['motion_encoder'] / 1e6:.1f}M / {counts['fusion_decoder'] / 1e6:.1f}M" in text
+    assert str(counts["trainable"]) in capsys.readouterr().out

@@ -151,7 +151,8 @@ def test_jit_vmap_agree_with_plain_calls():
     points = hand_points(8, rng)
     uv = project_rig(rig, points)
     w = jnp.asarray(rng.uniform(0.3, 1.0, size=(8, 2)), jnp.float32)
-    plain = np.stack([np.asarray(triangulate_stereo(rig, uv[i], w[i]).point) for i in range(8)])
+    one = jax.jit(triangulate_stereo)  # one example per call
+    plain = np.stack([np.asarray(one(rig, uv[i], w[i]).point) for i in range(8)])
     np.testing.assert_allclose(np.asarray(batched(rig, uv, w).point), plain, atol=1e-5)
     frames = jax.vmap(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)), in_axes=(None, 0, 0))
     np.testing.assert_allclose(np.asarray(frames(rig, uv.reshape(2, 4, 2, 2), w.reshape(2, 4, 2)).point).reshape(8, 3), plain, atol=1e-5)
@@ -162,7 +163,7 @@ def test_triangulate_batch_equals_nested_vmaps(x64):
     rng = np.random.default_rng(5)
     uv = project_rig(rig, hand_points(3 * 21, rng)).reshape(3, 21, 2, 2) + rng.normal(size=(3, 21, 2, 2))
     w = jnp.asarray(rng.uniform(0.0, 1, size=(3, 21, 2)))
-    nested = jax.vmap(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)), in_axes=(None, 0, 0))(rig, uv, w)
+    nested = jax.jit(jax.vmap(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)), in_axes=(None, 0, 0)))(rig, uv, w)
     for chunk in (8, 1000):
         got = triangulation.triangulate_batch(rig.cameras, rig.T_rig_cams, uv, w, chunk=chunk)
         assert got.point.shape == (3, 21, 3) and got.residual_px.shape == (3, 21, 2)

@@ -14,6 +14,7 @@ import os
 import pathlib
 import shutil
 import tempfile
+from collections.abc import Sequence
 
 import cv2
 import equinox as eqx
@@ -272,7 +273,7 @@ def predict(
     clip_batch: ClipInput,
     hand_model: ManoModel | None = None,
     *,
-    is_right: bool | np.ndarray = True,
+    is_right: bool | Sequence[bool] | np.ndarray = True,
     threshold: float = 0.5,
 ) -> HandPrediction:
     """Hands of a batch of clips (leading batch axis), gated by the on-screen probability.
@@ -298,7 +299,7 @@ def predict(
 
 def clip_input_from_crops(
     crops: dict[str, np.ndarray],
-    T_rig_cams: np.ndarray,
+    T_rig_cams: Float[Array, "2 4 4"] | Float[np.ndarray, "2 4 4"],
     view_present: np.ndarray | None = None,
     *,
     size: int | None = None,
