@@ -30,7 +30,7 @@ from .pipeline import LabelConfig as LabelConfig
 from .pipeline import label_hand as label_hand
 from .pipeline import label_hands as label_hands
 from .priors import MotionPrior as MotionPrior
-from .priors import PosePrior as PosePrior
+from esther_jax.mano import PosePrior as PosePrior
 from .quality import depth_per_disparity as depth_per_disparity
 from .quality import frame_quality as frame_quality
 from .quality import label_quality as label_quality

@@ -31,7 +31,7 @@ from esther_jax import mano
 from esther_jax.cameras import StereoRig
 from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
 
-from .priors import MotionPrior, PosePrior, huber_residual, huber_vector
+from .priors import MotionPrior, huber_residual, huber_vector
 
 
 class FitWeights(eqx.Module):
@@ -91,7 +91,7 @@ class Problem(eqx.Module):
 
     model: mano.ManoModel
     rig: StereoRig
-    pose_prior: PosePrior
+    pose_prior: mano.PosePrior
     motion_prior: MotionPrior
     weights: FitWeights
     betas: Float[Array, "10"]

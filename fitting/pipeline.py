@@ -30,7 +30,7 @@ from esther_jax.cameras import StereoRig
 
 from . import evidence as ev, fusion, quality, stages
 from .objectives import FitWeights, Problem
-from .priors import MotionPrior, PosePrior
+from .priors import MotionPrior
 from .solve import SOLVERS
 
 BUCKET = 32
@@ -134,7 +134,7 @@ def _prepare(model, rig, uv, conf, box, box_score):
 
 @jax.jit
 def _problem(model, rig, weights, betas, fps) -> Problem:
-    return Problem(model, rig, PosePrior.from_model(model, betas), MotionPrior(), weights, betas, fps)
+    return Problem(model, rig, mano.PosePrior.from_model(model, betas), MotionPrior(), weights, betas, fps)
 
 
 @jax.jit

@@ -4,10 +4,9 @@ can use them, and a learned prior can be dropped in with the same signature).
 The paper uses DPoser-X as the pose prior and an AMASS-pretrained motion prior; neither
 is available offline, so these are our documented stand-ins:
 
-- `PosePrior`: the hand model's own pose distribution, i.e. the Mahalanobis distance
-  of the pose in its 45-D PCA space (`hands_components` rows are principal directions
-  scaled by their standard deviations, as in MANO), plus a hinge on the anatomical
-  joint limits (`esther_jax.mano.JOINT_LIMITS`, flexion / abduction / twist).
+- `PosePrior` (from the core, `esther_jax.mano.PosePrior`, shared with the network's
+  training): the hand model's own pose distribution, i.e. the Mahalanobis distance
+  of the pose in its 45-D PCA space plus hinges on the anatomical joint limits.
 - `MotionPrior`: smoothness of the trajectory over a 16-frame window (wrist rotation
   as 6D, the 15 joints' rotation vectors, the wrist position): residuals are the
   second temporal differences; combined with per-frame confidences from the 2D
@@ -25,7 +24,6 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from esther_jax import mano
 
 
 def huber_residual(r: Array, delta: float | Array) -> Array:
@@ -39,35 +37,6 @@ def huber_vector(e: Float[Array, "*batch d"], delta: float | Array) -> Float[Arr
     n = jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
     a = jnp.maximum(n, delta)
     return e * (jnp.sqrt(delta * (2.0 * a - delta)) / a)[..., None]
-
-
-class PosePrior(eqx.Module):
-    """PCA Mahalanobis distance of the hand pose plus anatomical joint-limit hinges."""
-
-    whitening: Float[Array, "45 45"]
-    """Maps a centred pose to its standardised PCA coefficients (inverse of components^T)."""
-    mean: Float[Array, "45"]
-    frames: Float[Array, "15 3 3"]
-    lower: Float[Array, "15 3"]
-    upper: Float[Array, "15 3"]
-    limit_weight: float = eqx.field(static=True, default=10.0)
-
-    @classmethod
-    def from_model(cls, model: mano.ManoModel, betas: Float[Array, "10"] | None = None) -> "PosePrior":
-        comps = model.hands_components
-        whitening = jnp.linalg.inv(comps.T)
-        b = jnp.zeros(model.num_betas, comps.dtype) if betas is None else betas
-        rest = mano.forward(model, mano.ManoParams(jnp.zeros(3), jnp.zeros((15, 3)), b, jnp.zeros(3)), check_finite=False)
-        tips = rest.vertices[model.fingertip_ids]
-        frames = mano.anatomical_frames(rest.transforms[:, :3, 3], tips, model.is_right)
-        limits = jnp.asarray(mano.JOINT_LIMITS, comps.dtype)
-        return cls(whitening, model.hands_mean, frames, limits[..., 0], limits[..., 1])
-
-    def __call__(self, hand_pose: Float[Array, "15 3"]) -> Float[Array, "90"]:
-        z = self.whitening @ (hand_pose.reshape(45) - self.mean)
-        angles = mano.hand_pose_to_anatomical(hand_pose, self.frames)
-        excess = jnp.maximum(angles - self.upper, 0.0) + jnp.maximum(self.lower - angles, 0.0)
-        return jnp.concatenate([z, self.limit_weight * excess.reshape(45)])
 
 
 class MotionPrior(eqx.Module):

@@ -9,7 +9,8 @@ from esther_jax import cameras, cli, clips, mano, metrics
 from esther_jax.data import motion, synth
 import fitting
 from fitting import LabelConfig, evidence, fusion, label_clips, label_hand, quality
-from fitting.priors import MotionPrior, PosePrior, huber_residual
+from esther_jax.mano import PosePrior
+from fitting.priors import MotionPrior, huber_residual
 
 FRAMES = 32  # one length bucket: the solvers compile once for the whole module
 

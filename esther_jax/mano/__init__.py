@@ -4,7 +4,7 @@ Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch
 `forward_rotations`, `with_shape`, `with_pose`, `with_rotations`, `rest_joints`, `load_builtin`, `load_mano_pkl`,
 `save_mano_pkl`, `model_id`, `mirror_params`, `mirror_points`, `to_smplx`, `from_smplx`,
 `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`, `export_mesh`,
-`anatomical_frames`, `JOINT_LIMITS`, and the joint-order constants.
+`anatomical_frames`, `JOINT_LIMITS`, `PosePrior`, and the joint-order constants.
 """
 
 from .anatomy import JOINT_LIMITS as JOINT_LIMITS
@@ -44,3 +44,4 @@ from .model import ManoParams as ManoParams
 from .model import model_id as model_id
 from .pca import hand_pose_to_pca as hand_pose_to_pca
 from .pca import pca_to_hand_pose as pca_to_hand_pose
+from .priors import PosePrior as PosePrior

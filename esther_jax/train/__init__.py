@@ -1,0 +1,21 @@
+"""Training the ESTHER network (appendices B, C, E): the losses term by term
+(`losses`), token masking and image augmentation (`masking`)."""
+
+from .losses import STAGE_TERMS as STAGE_TERMS
+from .losses import STAGES as STAGES
+from .losses import LossWeights as LossWeights
+from .losses import Targets as Targets
+from .losses import Term as Term
+from .losses import clip_loss_terms as clip_loss_terms
+from .losses import combine as combine
+from .losses import crop_projections as crop_projections
+from .losses import onscreen_label as onscreen_label
+from .masking import AugmentRates as AugmentRates
+from .masking import MaskingRates as MaskingRates
+from .masking import anchor_frames as anchor_frames
+from .masking import augment_images as augment_images
+from .masking import corrupt as corrupt
+from .masking import dropped_views as dropped_views
+from .masking import example_key as example_key
+from .masking import kept_views as kept_views
+from .masking import motion_mask as motion_mask

@@ -1,0 +1,290 @@
+"""Training (appendices B and C): every loss term against a value computed by hand on a
+tiny example, masks and switches, masking and augmentation rates and determinism, and
+the terms on the real `cpu-tiny` network (finite, with gradients; no dead switch)."""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esther_jax import mano
+from esther_jax import model as M
+from esther_jax import train
+from esther_jax.cameras import rig_preset
+from esther_jax.model.esther import ESTHEROutput
+from esther_jax.model.fusion_decoder import Decoded
+from esther_jax.model.motion_encoder import MotionEvidence
+from esther_jax.model.stereo_encoder import ImageEvidence, depth_bin_centres
+from esther_jax.rotations import axis_angle_to_matrix, matrix_to_rotation_6d
+
+T, S = 4, 64
+CFG = M.config("cpu-tiny", num_frames=T)
+
+
+@pytest.fixture(scope="module")
+def hand():
+    return mano.load_builtin("right")
+
+
+def _clip(images=True, frames=T) -> M.ClipInput:
+    """Crop cameras of both views aimed at a hand 0.4 m ahead (as the model tests do)."""
+    rig = rig_preset("esther")
+    f = 0.6 * S  # wide: the whole hand inside both crops
+    K = jnp.asarray([[f, 0.0, S / 2 - 0.5], [0.0, f, S / 2 - 0.5], [0.0, 0.0, 1.0]])
+    target = jnp.asarray([0.0, 0.05, 0.4])
+    R = []
+    for v in range(2):
+        d = target - rig.T_rig_cams[v, :3, 3]
+        z = d / jnp.linalg.norm(d)
+        x = jnp.cross(jnp.asarray([0.0, 1.0, 0.0]), z)
+        x = x / jnp.linalg.norm(x)
+        R.append(jnp.stack([x, jnp.cross(z, x), z], axis=1))
+    return M.ClipInput(
+        images=jax.random.uniform(jax.random.key(0), (frames, 2, 3, S, S)) if images else None,
+        features=None,
+        K=jnp.broadcast_to(K, (frames, 2, 3, 3)),
+        R_cam_crop=jnp.broadcast_to(jnp.stack(R), (frames, 2, 3, 3)),
+        T_rig_cams=rig.T_rig_cams,
+        flow=jnp.zeros((frames, 192)),
+        view_present=jnp.ones((frames, 2), bool),
+    )
+
+
+def _targets(hand) -> train.Targets:
+    rng = np.random.default_rng(0)
+    orient = jnp.asarray(rng.normal(scale=0.3, size=(T, 3)), jnp.float32)
+    pose = jnp.asarray(rng.normal(scale=0.2, size=(T, 15, 3)), jnp.float32)
+    betas = jnp.asarray(rng.normal(scale=0.5, size=10), jnp.float32)
+    transl = jnp.asarray([[0.0, 0.05, 0.4]]) + jnp.asarray(rng.normal(scale=0.01, size=(T, 3)), jnp.float32)
+    joints = jax.vmap(lambda o, p, t: mano.forward_joints(hand, mano.ManoParams(o, p, betas, t)))(orient, pose, transl)
+    return train.Targets(orient, pose, betas, transl, joints, jnp.ones(T, bool))
+
+
+def _perfect_output(hand, clip, targets) -> ESTHEROutput:
+    """An output equal to the targets, with neutral logits (hand-computable losses)."""
+    G, B = CFG.grid, CFG.depth_bins
+    uv, _, _ = train.crop_projections(clip, targets.joints, S)
+    local = axis_angle_to_matrix(jnp.concatenate([targets.global_orient[:, None], targets.hand_pose], axis=1))
+    params = jax.vmap(lambda o, p, t: mano.ManoParams(o, p, targets.betas, t))(targets.global_orient, targets.hand_pose, targets.transl)
+    vertices = jax.vmap(lambda R, t: mano.forward_rotations(hand, R, targets.betas, t).vertices)(local, targets.transl)
+    canonical = targets.joints - targets.joints[:, :1]
+    return ESTHEROutput(
+        image=ImageEvidence(
+            features=jnp.zeros((T, 21, 8)), heatmap_logits=jnp.zeros((T, 2, 21, G, G)), keypoints_2d=uv,
+            visibility_logits=jnp.zeros((T, 2, 21)), depth_logits=jnp.zeros((T, 2, 21, B)), triangulated=targets.joints,
+            triangulation_valid=jnp.ones((T, 21), bool), triangulation_spread=jnp.zeros((T, 21)),
+        ),
+        motion=MotionEvidence(
+            features=jnp.zeros((T, 21, 8)), root=jnp.zeros((T, 8)), onscreen_logits=jnp.zeros(T),
+            canonical_joints=canonical, pose_6d=matrix_to_rotation_6d(local),
+            root_velocity=jnp.concatenate([targets.transl[1:] - targets.transl[:-1], jnp.zeros((1, 3))]),
+        ),
+        decoded=Decoded(pose_6d=matrix_to_rotation_6d(local), rotations=local, betas=targets.betas, transl=targets.transl,
+                        gates=jnp.full((1, T, 18, 3), 1 / 3)),
+        params=params, joints=targets.joints, vertices=vertices,
+    )  # fmt: skip
+
+
+def _means(out, clip, targets, hand, mask=None, cfg=CFG):
+    mask = jnp.zeros((T, 21), bool) if mask is None else mask
+    terms = train.clip_loss_terms(out, clip, targets, mask, hand, cfg, crop_size=S)
+    return train.combine(terms, cfg, "joint")
+
+
+def test_each_loss_term_equals_its_hand_computed_value(hand):
+    clip, targets = _clip(), _targets(hand)
+    perfect = _perfect_output(hand, clip, targets)
+    _, means = _means(perfect, clip, targets, hand)
+    uv, depth, inside = train.crop_projections(clip, targets.joints, S)
+    assert bool(jnp.all(inside)), "the test hand must project into both crops"
+    for name in ("two_d", "triangulation", "joints", "canonical", "vertices", "six_d", "betas", "transl"):
+        assert float(means[name]) == pytest.approx(0.0, abs=2e-6), name
+    assert float(means["rotation"]) == pytest.approx(0.0, abs=2e-3)  # arccos near 1 in float32
+    assert float(means["visibility"]) == pytest.approx(math.log(2.0), rel=1e-5)  # logit 0, every joint visible
+    assert float(means["onscreen"]) == pytest.approx(math.log(2.0), rel=1e-5)
+    assert float(means["depth"]) == pytest.approx(math.log(CFG.depth_bins), rel=1e-5)  # uniform over the bins
+    # heatmap: uniform logits against the Gaussian targets: CE = log(G^2)
+    assert float(means["heatmap"]) == pytest.approx(math.log(CFG.grid**2), rel=1e-5)
+    assert float(means["motion"]) == 0.0  # nothing masked: no motion term
+    # priors from the core's PosePrior, by hand
+    prior = mano.PosePrior.from_model(hand)
+    z = np.stack([np.asarray(prior.whitening) @ (np.asarray(p).reshape(45) - np.asarray(prior.mean)) for p in targets.hand_pose])
+    assert float(means["pose_prior"]) == pytest.approx(float(np.mean(z**2)), rel=1e-4)
+    assert float(means["shape_prior"]) == pytest.approx(float(np.mean(np.asarray(targets.betas) ** 2)), rel=1e-6)
+
+    # now each term moved by a known amount
+    shift = jnp.asarray([0.01, -0.02, 0.0])
+    off = dataclasses.replace(
+        perfect,
+        joints=perfect.joints + shift[None, None],  # joints: |0.01| + |-0.02| = 0.03 per joint; canonical unchanged
+        image=dataclasses.replace(perfect.image, keypoints_2d=perfect.image.keypoints_2d + jnp.asarray([[[[3.0, 4.0]]]]),
+                                  triangulated=perfect.image.triangulated + jnp.asarray([[[0.0, 0.0, 0.002]]])),
+        decoded=dataclasses.replace(perfect.decoded, betas=perfect.decoded.betas + 0.1),
+        params=dataclasses.replace(perfect.params, transl=perfect.params.transl + jnp.asarray([[0.005, 0.0, 0.0]])),
+    )  # fmt: skip
+    _, means = _means(off, clip, targets, hand)
+    assert float(means["joints"]) == pytest.approx(0.03, rel=1e-4)
+    assert float(means["canonical"]) == pytest.approx(0.0, abs=1e-6)
+    norm, delta = 5.0 / S, train.LossWeights().huber_delta  # a 3-4-5 pixel error, beyond delta
+    assert float(means["two_d"]) == pytest.approx(delta * (norm - delta / 2), rel=1e-4)
+    assert float(means["triangulation"]) == pytest.approx(0.002, rel=1e-3)
+    assert float(means["betas"]) == pytest.approx(1.0, rel=1e-5)  # ten coefficients, 0.1 each
+    assert float(means["transl"]) == pytest.approx(0.005, rel=1e-4)
+
+
+def test_masks_decide_which_entries_count(hand):
+    clip, targets = _clip(), _targets(hand)
+    perfect = _perfect_output(hand, clip, targets)
+    off = dataclasses.replace(perfect, image=dataclasses.replace(perfect.image, keypoints_2d=perfect.image.keypoints_2d + 1.0))
+    # a blanked view contributes no 2D / heatmap / visibility entries; triangulation needs both views
+    blanked = dataclasses.replace(clip, view_present=clip.view_present.at[0, 1].set(False))
+    terms = train.clip_loss_terms(off, blanked, targets, jnp.zeros((T, 21), bool), hand, CFG, crop_size=S)
+    assert float(terms["two_d"].count) == T * 2 * 21 - 21
+    assert float(terms["heatmap"].count) == T * 2 * 21 - 21 and float(terms["visibility"].count) == T * 2 * 21 - 21
+    assert float(terms["triangulation"].count) == (T - 1) * 21
+    # a frame without a target: no 3D terms there; it is an on-screen negative
+    no_target = dataclasses.replace(targets, valid=targets.valid.at[2].set(False))
+    terms = train.clip_loss_terms(perfect, clip, no_target, jnp.zeros((T, 21), bool), hand, CFG, crop_size=S)
+    assert float(terms["joints"].count) == (T - 1) * 21 and float(terms["transl"].count) == T - 1
+    assert train.onscreen_label(no_target, jnp.ones((T, 2, 21), bool)).tolist() == [True, True, False, True]
+    # the motion term: only at masked positions, L1 of canonical joints per masked joint
+    mask = jnp.zeros((T, 21), bool).at[1, 3].set(True)
+    moved = dataclasses.replace(perfect, motion=dataclasses.replace(
+        perfect.motion, canonical_joints=perfect.motion.canonical_joints.at[1, 3].add(jnp.asarray([0.0, 0.01, 0.0])),
+        root_velocity=perfect.motion.root_velocity.at[2].add(1.0)))  # fmt: skip  (frame 2 is not masked: ignored)
+    _, means = _means(moved, clip, targets, hand, mask)
+    assert float(means["motion"]) == pytest.approx(0.01, rel=1e-4)
+
+
+def test_terms_are_masked_means_independent_of_the_batch(hand):
+    clip, targets = _clip(), _targets(hand)
+    out = _perfect_output(hand, clip, targets)
+    out = dataclasses.replace(out, joints=out.joints + 0.01)
+    one = train.clip_loss_terms(out, clip, targets, jnp.zeros((T, 21), bool), hand, CFG, crop_size=S)
+    batch = jax.tree.map(lambda x: jnp.stack([x, x, x]), one)  # three copies: same means
+    for stage in train.STAGES:
+        a, _ = train.combine(one, CFG, stage)
+        b, _ = train.combine(batch, CFG, stage)
+        assert float(a) == pytest.approx(float(b), rel=1e-6)
+    assert float(train.combine(one, CFG, "joint")[0]) > float(train.combine(one, CFG, "image")[0])
+    # the table-5 switches take their terms out
+    loss, _ = train.combine(one, CFG, "image")
+    no_2d, means = train.combine(one, CFG.replace(guidance_2d=False), "image")
+    w = train.LossWeights()
+    assert float(loss - no_2d) == pytest.approx(float(w.two_d * means["two_d"] + w.heatmap * means["heatmap"]), rel=1e-5)
+    no_tri, _ = train.combine(one, CFG.replace(guidance_triangulation=False), "image")
+    assert float(loss - no_tri) == pytest.approx(float(w.triangulation * means["triangulation"]), rel=1e-5)
+    with pytest.raises(ValueError, match="stage"):
+        train.combine(one, CFG, "both")
+
+
+# ----------------------------------------------------------------------------- masking and augmentation
+
+
+def _binomial_ok(hits: float, n: int, p: float) -> bool:
+    return abs(hits - n * p) <= 4.0 * math.sqrt(n * p * (1 - p)) + 1
+
+
+def test_token_masking_rates_and_anchor_frames():
+    frames, draws = 16, 3000
+    rates = train.MaskingRates()
+    keys = jax.random.split(jax.random.key(1), draws)
+    masks = np.asarray(jax.jit(jax.vmap(lambda k: train.motion_mask(k, frames, rates)))(keys))
+    anchors = np.asarray(train.anchor_frames(frames))
+    assert anchors.tolist() == [t % 4 == 0 for t in range(frames)]
+    assert not masks[:, anchors].any()  # anchor frames are never masked
+    free = ~anchors
+    whole = masks.all(axis=2)  # (draws, T) whole frames masked (frame or span)
+    # P(whole frame) at frame t: 1 - (1 - 0.1)(1 - 0.1 * starts covering t / starts)
+    starts = frames - rates.span_length + 1
+    for t in np.flatnonzero(free):
+        covering = sum(1 for s in range(starts) if s <= t < s + rates.span_length)
+        p = 1 - (1 - rates.frame) * (1 - rates.span * covering / starts)
+        assert _binomial_ok(whole[:, t].sum(), draws, p + (1 - p) * rates.joint**21), t
+    partial = masks[:, free][~whole[:, free]]  # joints of frames not wholly masked: per-joint rate
+    assert _binomial_ok(partial.sum(), partial.size, rates.joint)
+    views = np.asarray(jax.vmap(lambda k: train.dropped_views(k, rates))(keys))
+    assert _binomial_ok(views.sum(), views.size, rates.view)
+
+
+def test_augmentation_rates_and_determinism():
+    draws, frames = 400, 4
+    rates = train.AugmentRates()
+    images = jnp.full((frames, 2, 3, 16, 16), 0.5)
+    keys = jax.vmap(lambda i: train.example_key(7, 3, i))(jnp.arange(draws))
+    out, present = jax.jit(jax.vmap(lambda k: train.augment_images(k, images, rates)))(keys)
+    out, present = np.asarray(out), np.asarray(present)
+    absent = ~present
+    p_view = 1 - (1 - rates.view_blank) * (1 - rates.frame_blank)
+    assert _binomial_ok(absent.sum(), absent.size, p_view)
+    p_frame = rates.frame_blank + (1 - rates.frame_blank) * rates.view_blank**2
+    assert _binomial_ok(absent.all(axis=2).sum(), draws * frames, p_frame)
+    assert np.all(out[absent] == 0.0) and out.min() >= 0.0 and out.max() <= 1.0
+    # erasing: fills whole rectangles with noise in about half the present views
+    kept = out[present]  # (n, 3, 16, 16)
+    deviation = np.abs(kept - 0.5).max(axis=1)
+    erased = (deviation > 0.35).reshape(len(kept), -1).mean(axis=1) > 0.005  # noise sigma <= 0.08 rarely exceeds 0.35
+    assert abs(erased.mean() - rates.erase) < 0.08
+    # reproducible per (seed, step, example); another step or example differs
+    again = train.augment_images(train.example_key(7, 3, 5), images, rates)
+    np.testing.assert_allclose(np.asarray(again[0]), out[5], atol=1e-6)  # one example alone, unbatched and eager
+    np.testing.assert_array_equal(np.asarray(again[1]), present[5])
+    np.testing.assert_array_equal(np.asarray(train.augment_images(train.example_key(7, 3, 5), images, rates)[0]), np.asarray(again[0]))
+    other = train.augment_images(train.example_key(7, 4, 5), images, rates)
+    assert not np.array_equal(np.asarray(other[0]), out[5])
+
+
+def test_corruption_follows_the_switches():
+    clip = _clip(frames=16)  # 16 frames: anchors 0, 4, 8, 12 (with 4 frames every frame is an anchor)
+    key = train.example_key(0, 0, 0)
+    same, mask = train.corrupt(key, clip, CFG.replace(motion_masking=False, image_augmentation=False))
+    assert not bool(mask.any())
+    for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(clip)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    found_blank, masked = False, 0
+    for step in range(20):
+        changed, mask = train.corrupt(train.example_key(0, step, 0), clip, CFG)
+        masked += int(mask.sum())
+        assert not bool(mask[train.anchor_frames(16)].any())
+        absent = ~np.asarray(changed.view_present)
+        assert np.all(np.asarray(changed.images)[absent] == 0.0)  # an absent view is never fed as a real view
+        found_blank |= bool(absent.any())
+    assert found_blank and masked > 0
+    assert not bool(train.motion_mask(key, 4).any())  # 4 frames: all anchors
+    features = dataclasses.replace(clip, images=None, features=jnp.ones((16, 2, CFG.grid**2, 8)))
+    blanked, _ = train.corrupt(key, features, CFG)
+    assert blanked.images is None and blanked.view_present.shape == (16, 2)
+
+
+# ----------------------------------------------------------------------------- the real network
+
+
+def test_terms_on_the_network_are_finite_and_train_every_head(hand):
+    net = M.ESTHER(CFG, key=jax.random.key(0))
+    clip, targets = _clip(), _targets(hand)
+    noisy, mask = train.corrupt(train.example_key(0, 1, 0), clip, CFG)
+    mask = mask.at[1, 2:9].set(True)  # 4 frames are all anchors: mask some slots by hand for the motion term
+
+    @eqx.filter_jit
+    def loss_and_grads(n, stage):
+        def loss(n):
+            out = n(noisy, hand, motion_mask=mask)
+            terms = train.clip_loss_terms(out, noisy, targets, mask, hand, CFG, crop_size=S)
+            return train.combine(terms, CFG, stage)
+
+        return eqx.filter_value_and_grad(loss, has_aux=True)(n)
+
+    (loss, means), grads = loss_and_grads(net, "joint")
+    assert np.isfinite(float(loss)) and all(np.isfinite(float(v)) for v in means.values())
+    assert float(means["motion"]) > 0
+    assert set(means) == set(train.STAGE_TERMS["joint"])
+    for part in ("image_encoder", "motion_encoder", "fusion_decoder", "backbone"):
+        leaves = jax.tree.leaves(eqx.filter(getattr(grads, part), eqx.is_inexact_array))
+        assert any(float(jnp.abs(g).max()) > 0 for g in leaves), part
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves), part
+    (image_loss, _), _ = loss_and_grads(net, "image")
+    assert float(image_loss) < float(loss)
