@@ -32,7 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     synth.add_argument("--frames", type=int, default=64, help="frames per clip (30 fps)")
     synth.add_argument("--rig", default="esther", choices=["esther", "esther_mocap", "hot3d_aria", "hot3d_quest3"])
     synth.add_argument("--render", action="store_true", help="render both views to video/*.mp4 and the hand crops")
-    synth.add_argument("--crops", action="store_true", help="render only the 224 x 224 hand crops and flow tokens")
+    synth.add_argument("--crops", action="store_true", help="render only the hand crops and flow tokens")
+    synth.add_argument("--crop-size", type=int, default=224, help="side of the hand crops in pixels (default 224; cpu-tiny uses 64)")
     synth.add_argument("--detector-preset", default="default", choices=["clean", "easy", "default", "hard"])
     synth.add_argument("--vertices", action="store_true", help="store ground-truth vertices in gt.npz")
     synth.add_argument("--seed", type=int, default=0)
@@ -68,8 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.clips < 0 or args.frames < 3:
             print("esther synth: need --clips >= 0 and --frames >= 3", file=sys.stderr)
             return 2
+        if args.crop_size < 16:
+            print("esther synth: need --crop-size >= 16", file=sys.stderr)
+            return 2
         cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset,
-                          render=args.render, crops=args.crops, vertices=args.vertices)  # fmt: skip
+                          render=args.render, crops=args.crops, vertices=args.vertices, crop_size=args.crop_size)  # fmt: skip
         try:
             summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
         except ValueError as err:  # a folder made with other settings

@@ -205,3 +205,30 @@ __all__ = [
     "square_box",
     "warp_crop",
 ]
+
+
+def resize_crops(images: np.ndarray, K: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stored crops `images` (..., S, S, 3) RGB or (..., S, S) grey, resized to `size` x
+    `size` pixels, and their intrinsics `K (..., 3, 3)` scaled with them (pixel-centre
+    convention: a pixel centre u maps to scale (u + 0.5) - 0.5), so the crop cameras
+    still project the scene onto the resized pixels. Area averaging when shrinking,
+    bilinear when enlarging. The one place where crops change size."""
+    images, K = np.asarray(images), np.asarray(K, np.float64)
+    rgb = images.shape[-1] == 3
+    square = images.shape[-3:-1] if rgb else images.shape[-2:]
+    if len(square) != 2 or square[0] != square[1]:
+        raise ValueError(f"crops must be (..., S, S, 3) or (..., S, S); got {images.shape}")
+    if size < 1:
+        raise ValueError(f"crop size must be positive, got {size}")
+    S = square[0]
+    if size == S:
+        return images, K
+    scale = size / S
+    interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    lead = images.shape[: -3 if rgb else -2]
+    flat = images.reshape((-1,) + images.shape[len(lead):])
+    resized = np.stack([cv2.resize(im, (size, size), interpolation=interpolation) for im in flat])
+    K = K.copy()
+    K[..., :2, :2] *= scale
+    K[..., :2, 2] = scale * (K[..., :2, 2] + 0.5) - 0.5
+    return resized.reshape(lead + resized.shape[1:]), K

@@ -288,3 +288,69 @@ def test_terms_on_the_network_are_finite_and_train_every_head(hand):
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves), part
     (image_loss, _), _ = loss_and_grads(net, "image")
     assert float(image_loss) < float(loss)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def test_mirrored_targets_are_what_unmirror_inverts(hand):
+    """Mirroring a left hand's targets into its mirrored clip, then `unmirror`ing them as
+    a prediction, gives the targets back (joints and, through the left model, params)."""
+    left = mano.load_builtin("left")
+    clip, t = _clip(), _targets(hand)
+    joints = jax.vmap(lambda o, p, x: mano.forward_joints(left, mano.ManoParams(o, p, t.betas, x)))(t.global_orient, t.hand_pose, t.transl)
+    targets = dataclasses.replace(t, joints=joints)
+    mirrored = train.mirror_targets(targets, clip.T_rig_cams)
+    # the mirrored targets are a right hand: the right model reproduces their joints
+    right_joints = jax.vmap(lambda o, p, x: mano.forward_joints(hand, mano.ManoParams(o, p, t.betas, x)))(
+        mirrored.global_orient, mirrored.hand_pose, mirrored.transl)  # fmt: skip
+    np.testing.assert_allclose(right_joints, mirrored.joints, atol=1e-5)
+    params = jax.vmap(lambda o, p, x: mano.ManoParams(o, p, t.betas, x))(mirrored.global_orient, mirrored.hand_pose, mirrored.transl)
+    prediction = M.HandPrediction(params=params, joints=mirrored.joints, vertices=jnp.zeros((T, 1, 3)),
+                                  onscreen_prob=jnp.ones(T), emitted=jnp.ones(T, bool))  # fmt: skip
+    back = M.unmirror(prediction, clip.T_rig_cams)
+    np.testing.assert_allclose(back.joints, joints, atol=1e-5)
+    np.testing.assert_allclose(back.params.transl, t.transl, atol=1e-5)
+    np.testing.assert_allclose(axis_angle_to_matrix(back.params.global_orient), axis_angle_to_matrix(t.global_orient), atol=1e-5)
+
+
+def test_batches_are_a_pure_function_of_seed_and_step():
+    a = [train.batch_indices(10, 4, seed=3, step=s) for s in range(6)]
+    b = [train.batch_indices(10, 4, seed=3, step=s) for s in range(6)]
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert len(set(np.concatenate(a[:2]).tolist())) == 8  # one epoch (2 steps of 4): no window twice
+    assert not np.array_equal(np.concatenate(a[:2]), np.concatenate(a[2:4]))  # a new permutation per epoch
+    assert train.batch_indices(3, 8, seed=0, step=0).shape == (8,)  # fewer windows than a batch: repeated
+    with pytest.raises(ValueError, match="empty"):
+        train.batch_indices(0, 4, 0, 0)
+
+
+@pytest.fixture(scope="module")
+def synth_clip(tmp_path_factory):
+    from esther_jax.data import motion, synth
+
+    cfg = synth.SynthConfig(num_frames=8, crops=True, crop_size=64, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    return synth.write_clip(synth.make_clip(0, 0, cfg), tmp_path_factory.mktemp("synth") / "clip_00000")
+
+
+def test_windows_load_as_network_inputs_with_consistent_targets(synth_clip, tmp_path):
+    cfg = train.DataConfig(frames=4, stride=2, crop_size=S)
+    windows = train.build_index([synth_clip], cfg)
+    assert [(w.side, w.start) for w in windows] == [(s, i) for s in ("right", "left") for i in (0, 2, 4)]
+    loaded, loaded_cfg = train.load_index(train.save_index(tmp_path / "index.json", windows, cfg))
+    assert loaded == windows and loaded_cfg == cfg
+    for window in windows:
+        clip, targets = train.load_example(window, cfg)
+        assert clip.images.shape == (4, 2, 3, S, S) and targets.joints.shape == (4, 21, 3)
+        absent = ~np.asarray(clip.view_present)
+        assert np.all(np.asarray(clip.images)[absent] == 0.0)  # an absent view is never a real view
+        # the targets project where the crops show the hand, also for mirrored left hands
+        uv, _, inside = train.crop_projections(clip, targets.joints, S)
+        seen = np.asarray(inside) & np.asarray(clip.view_present)[..., None] & np.asarray(targets.valid)[:, None, None]
+        assert seen.mean() > 0.3, window
+        shown = np.asarray(clip.images)[~absent]
+        assert shown.size == 0 or shown.std() > 0.01  # present views carry the rendered crops
+    batch = train.load_batch(windows, cfg, batch=4, seed=0, step=1)
+    assert batch[0].images.shape == (4, 4, 2, 3, S, S) and batch[1].valid.shape == (4, 4)
+    with pytest.raises(ValueError, match="labels folder"):
+        train.DataConfig(targets="labels")

@@ -16,7 +16,6 @@ import shutil
 import tempfile
 from collections.abc import Sequence
 
-import cv2
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,6 +23,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ..files import read_json
+from ..crops import resize_crops
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
 from ._layers import broadcasting
@@ -320,13 +320,8 @@ def clip_input_from_crops(
     if images.ndim != 5 or images.shape[1] != 2 or images.shape[-1] != 3 or images.shape[2] != images.shape[3]:
         raise ValueError(f"crop images must be (T, 2, S, S[, 3]); got {crops['images'].shape}")
     K = np.asarray(crops["K"], np.float64)[frames]
-    if size is not None and size != images.shape[2]:
-        scale = size / images.shape[2]
-        interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-        images = np.stack([[cv2.resize(view, (size, size), interpolation=interpolation) for view in frame] for frame in images])
-        K = K.copy()
-        K[..., :2, :2] *= scale
-        K[..., :2, 2] = scale * (K[..., :2, 2] + 0.5) - 0.5
+    if size is not None:
+        images, K = resize_crops(images, K, size)
     dtype = jnp.result_type(float)
     T = images.shape[0]
     present = np.ones((T, 2), bool) if view_present is None else np.asarray(view_present, bool)[frames]

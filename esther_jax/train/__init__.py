@@ -1,5 +1,16 @@
 """Training the ESTHER network (appendices B, C, E): the losses term by term
-(`losses`), token masking and image augmentation (`masking`)."""
+(`losses`), token masking and image augmentation (`masking`), windows of clip folders
+and reproducible batches (`data`)."""
+
+from .data import DataConfig as DataConfig
+from .data import Window as Window
+from .data import batch_indices as batch_indices
+from .data import build_index as build_index
+from .data import load_batch as load_batch
+from .data import load_example as load_example
+from .data import load_index as load_index
+from .data import mirror_targets as mirror_targets
+from .data import save_index as save_index
 
 from .losses import STAGE_TERMS as STAGE_TERMS
 from .losses import STAGES as STAGES

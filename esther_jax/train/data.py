@@ -1,0 +1,188 @@
+"""Training data from clip folders (docs/architecture.md): an index of windows, one
+example per window as arrays, and the batch of a step as a pure function of
+(seed, step).
+
+- A window is `(clip folder, hand, first frame)`; `build_index` lists every window of
+  `DataConfig.frames` frames at `DataConfig.stride` over the clips that have crops
+  (`crops/<side>.npz`) and a target: the exact ground truth (`gt.npz`, frames on screen)
+  or the teacher's labels (`<labels>/<clip>/hands/<side>/labels.npz`, frames `valid`:
+  the pseudo-labels the paper trains on). The index is saved once (`save_index`).
+- `load_example` reads a window: the crops resized to the network's crop size with their
+  intrinsics (`crops.resize_crops`), the flow tokens, the rig, the targets. A view in
+  which no joint of the hand projects into the image in front of the camera is absent
+  (`view_present` False, pixels zero): it never reaches the encoder as a real view.
+  Left hands are mirrored into right hands (`model.mirror_clip`), their targets with
+  them (`mirror_targets`, the exact inverse of what `model.unmirror` does to a
+  prediction).
+- `batch_indices(num_windows, batch, seed, step)`: the windows of step `step`, a fresh
+  permutation per epoch seeded by (seed, epoch). No iterator state: resuming at step s
+  continues the exact same stream.
+"""
+
+import dataclasses
+import functools
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import clips, mano
+from ..cameras import StereoRig
+from ..crops import resize_crops
+from ..files import read_json, write_json
+from ..model.esther import ClipInput, mirror_clip
+from .losses import Targets
+
+TARGET_KINDS = ("gt", "labels")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    frames: int = 16
+    """Window length (the network's `num_frames`)."""
+    stride: int = 8
+    crop_size: int = 224
+    """The network's crop size; stored crops are resized to it."""
+    targets: str = "gt"
+    """'gt' (synthetic ground truth) or 'labels' (the teacher's labels under `labels`)."""
+    labels: str | None = None
+    """Root of the teacher's label folders (targets = 'labels')."""
+
+    def __post_init__(self):
+        if self.targets not in TARGET_KINDS:
+            raise ValueError(f"targets must be one of {TARGET_KINDS}, got {self.targets!r}")
+        if self.targets == "labels" and not self.labels:
+            raise ValueError("targets = 'labels' needs the labels folder (esther label --out)")
+        if self.frames < 2 or self.stride < 1 or self.crop_size < 16:
+            raise ValueError(f"need frames >= 2, stride >= 1, crop_size >= 16; got {self.frames}, {self.stride}, {self.crop_size}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Window:
+    clip: str
+    """The clip folder."""
+    side: str
+    start: int
+
+
+def _target_file(clip: pathlib.Path, side: str, cfg: DataConfig) -> pathlib.Path:
+    if cfg.targets == "gt":
+        return clips.hand_file(clip, side, "gt")
+    return clips.hand_file(pathlib.Path(cfg.labels) / clip.name, side, "labels")
+
+
+def build_index(clip_dirs: list[str | pathlib.Path], cfg: DataConfig) -> list[Window]:
+    """Every training window of the clips (sorted by clip, hand, start). Clips shorter
+    than a window, and hands without crops or targets, contribute none."""
+    windows = []
+    for clip in sorted(pathlib.Path(c) for c in clip_dirs):
+        frames = int(clips.read_meta(clip)["num_frames"])
+        for side in clips.SIDES:
+            if not (clip / "crops" / f"{side}.npz").is_file() or not _target_file(clip, side, cfg).is_file():
+                continue
+            windows += [Window(str(clip), side, start) for start in range(0, frames - cfg.frames + 1, cfg.stride)]
+    return windows
+
+
+def save_index(path: str | pathlib.Path, windows: list[Window], cfg: DataConfig) -> pathlib.Path:
+    """Write the index (and the data config it was built with) as JSON, atomically."""
+    return write_json(path, {"data": dataclasses.asdict(cfg), "windows": [dataclasses.asdict(w) for w in windows]})
+
+
+def load_index(path: str | pathlib.Path) -> tuple[list[Window], DataConfig]:
+    record = read_json(path)
+    try:
+        return [Window(**w) for w in record["windows"]], DataConfig(**record["data"])
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"{path} is not a training index ({err})") from err
+
+
+def batch_indices(num_windows: int, batch: int, seed: int, step: int) -> np.ndarray:
+    """Which windows make the batch of `step`: consecutive slices of a permutation drawn
+    per epoch from (seed, epoch); a pure function, so a resumed run sees the same stream."""
+    if num_windows < 1:
+        raise ValueError("the training index is empty: no clip has crops and targets of at least one window")
+    per_epoch = max(num_windows // batch, 1)
+    epoch, offset = divmod(step, per_epoch)
+    order = np.random.default_rng([seed, epoch]).permutation(num_windows)
+    return np.resize(order, per_epoch * batch)[offset * batch : (offset + 1) * batch]
+
+
+def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
+    """Targets of a left hand in the frame of its mirrored clip (`mirror_clip`), as the
+    right hand it becomes: the inverse of `model.unmirror` (which maps predictions on the
+    mirrored clip back). `T_rig_cams` are the original clip's camera poses."""
+    T1_inv = jnp.linalg.inv(T_rig_cams[1])
+    R, t = T1_inv[:3, :3], T1_inv[:3, 3]
+
+    def params_of(frame):
+        p = mano.ManoParams(frame[0], frame[1], targets.betas, frame[2])
+        return mano.mirror_params(mano.transform_params(T1_inv, p))
+
+    params = jax.vmap(params_of)((targets.global_orient, targets.hand_pose, targets.transl))
+    joints = mano.mirror_points(jnp.einsum("ij,tnj->tni", R, targets.joints) + t[None, None])
+    return Targets(params.global_orient, params.hand_pose, targets.betas, params.transl, joints, targets.valid)
+
+
+@functools.lru_cache(maxsize=64)
+def _clip_arrays(clip: str, side: str, crop_size: int, target_file: str):
+    """A hand's whole crops (resized), rig and targets, read once per process."""
+    folder = pathlib.Path(clip)
+    path = folder / "crops" / f"{side}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            crops = {k: data[k] for k in ("images", "K", "R_cam_crop", "flow")}
+    except (OSError, ValueError, KeyError) as err:
+        raise clips.ClipFormatError(f"{path} is not a crops file (images, K, R_cam_crop, flow): {err}") from err
+    images, K = resize_crops(crops["images"], crops["K"], crop_size)
+    if images.ndim == 4:  # grey rigs: replicate to RGB
+        images = np.repeat(images[..., None], 3, axis=-1)
+    kind = "gt" if target_file.endswith("gt.npz") else "labels"
+    target = clips.load_npz(target_file, kind)
+    rig = StereoRig.from_json(folder / "rig.json")
+    return images, K, crops["R_cam_crop"], crops["flow"], rig, target, kind
+
+
+def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
+    """One window as the network's input and its targets (a right hand: left hands mirrored)."""
+    clip = pathlib.Path(window.clip)
+    images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, cfg.crop_size, str(_target_file(clip, window.side, cfg)))
+    sl = slice(window.start, window.start + cfg.frames)
+    if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
+        raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
+    dtype = jnp.result_type(float)
+    joints = jnp.asarray(target["joints"][sl], dtype)
+    valid = target["onscreen"][sl] if kind == "gt" else target["valid"][sl]
+    seen = np.asarray(jnp.any(rig.is_visible(joints), axis=-1)).T  # (T, 2): some joint in the image, in front
+    present = seen
+    pixels = np.where(present[:, :, None, None, None], images[sl], 0)
+    example = ClipInput(
+        images=jnp.asarray(np.moveaxis(pixels, -1, 2), dtype) / 255.0,
+        features=None,
+        K=jnp.asarray(K[sl], dtype),
+        R_cam_crop=jnp.asarray(R_cam_crop[sl], dtype),
+        T_rig_cams=jnp.asarray(rig.T_rig_cams, dtype),
+        flow=jnp.asarray(flow[sl], dtype),
+        view_present=jnp.asarray(present),
+    )
+    targets = Targets(
+        global_orient=jnp.asarray(target["global_orient"][sl], dtype),
+        hand_pose=jnp.asarray(target["hand_pose"][sl], dtype),
+        betas=jnp.asarray(target["betas"], dtype),
+        transl=jnp.asarray(target["transl"][sl], dtype),
+        joints=joints,
+        valid=jnp.asarray(valid),
+    )
+    if window.side == "left":
+        return mirror_clip(example), mirror_targets(targets, example.T_rig_cams)
+    return example, targets
+
+
+def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int) -> tuple[ClipInput, Targets]:
+    """The stacked examples of `step` (leading batch axis)."""
+    examples = [load_example(windows[i], cfg) for i in batch_indices(len(windows), batch, seed, step)]
+    return jax.tree.map(lambda *x: jnp.stack(x), *examples)
+
+
+__all__ = ["DataConfig", "TARGET_KINDS", "Window", "batch_indices", "build_index", "load_batch", "load_example", "load_index", "mirror_targets", "save_index"]
