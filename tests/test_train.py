@@ -3,6 +3,7 @@ tiny example, masks and switches, masking and augmentation rates and determinism
 the terms on the real `cpu-tiny` network (finite, with gradients; no dead switch)."""
 
 import dataclasses
+import json
 import math
 
 import equinox as eqx
@@ -270,15 +271,16 @@ def test_terms_on_the_network_are_finite_and_train_every_head(hand):
     mask = mask.at[1, 2:9].set(True)  # 4 frames are all anchors: mask some slots by hand for the motion term
 
     @eqx.filter_jit
-    def loss_and_grads(n, stage):
+    def loss_and_grads(n):
         def loss(n):
             out = n(noisy, hand, motion_mask=mask)
             terms = train.clip_loss_terms(out, noisy, targets, mask, hand, CFG, crop_size=S)
-            return train.combine(terms, CFG, stage)
+            loss, means = train.combine(terms, CFG, "joint")
+            return loss, (means, terms)
 
         return eqx.filter_value_and_grad(loss, has_aux=True)(n)
 
-    (loss, means), grads = loss_and_grads(net, "joint")
+    (loss, (means, terms)), grads = loss_and_grads(net)
     assert np.isfinite(float(loss)) and all(np.isfinite(float(v)) for v in means.values())
     assert float(means["motion"]) > 0
     assert set(means) == set(train.STAGE_TERMS["joint"])
@@ -286,8 +288,8 @@ def test_terms_on_the_network_are_finite_and_train_every_head(hand):
         leaves = jax.tree.leaves(eqx.filter(getattr(grads, part), eqx.is_inexact_array))
         assert any(float(jnp.abs(g).max()) > 0 for g in leaves), part
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves), part
-    (image_loss, _), _ = loss_and_grads(net, "image")
-    assert float(image_loss) < float(loss)
+    image_loss, _ = train.combine(terms, CFG, "image")
+    assert 0 < float(image_loss) < float(loss)
 
 
 # ----------------------------------------------------------------------------- data
@@ -354,3 +356,68 @@ def test_windows_load_as_network_inputs_with_consistent_targets(synth_clip, tmp_
     assert batch[0].images.shape == (4, 4, 2, 3, S, S) and batch[1].valid.shape == (4, 4)
     with pytest.raises(ValueError, match="labels folder"):
         train.DataConfig(targets="labels")
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def test_optimiser_masks_and_stages():
+    net = M.ESTHER(CFG, key=jax.random.key(0))
+    image_only = train.stage_spec(net, "image")
+    assert not any(jax.tree.leaves(image_only.motion_encoder)) and not any(jax.tree.leaves(image_only.fusion_decoder))
+    assert any(jax.tree.leaves(image_only.image_encoder))
+    params, _ = eqx.partition(net, train.stage_spec(net, "joint"))
+    mask = train.decay_mask(params)
+    paths = {jax.tree_util.keystr(p): m for p, m in jax.tree_util.tree_leaves_with_path(mask)}
+    assert any(m for k, m in paths.items() if k.endswith(".weight"))
+    assert not any(m for k, m in paths.items() if "token" in k or k.endswith(".bias") or "norm" in k)
+    frozen = M.ESTHER(CFG.replace(freeze_backbone=True), key=jax.random.key(0))
+    state = train.Trainer(frozen, train.TrainConfig(steps=2), mano.load_builtin("right")).init()
+    assert state.params.backbone is None or not any(x is not None for x in jax.tree.leaves(state.params.backbone))
+    with pytest.raises(ValueError, match="stage"):
+        train.TrainConfig(stage="both")
+
+
+def test_a_run_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path, monkeypatch):
+    """Run A trains 4 steps. Run B meets a NaN target at step 3: it stops, names the step and
+    the terms, and keeps its step-2 checkpoint; resumed, it ends with run A's losses and weights."""
+    from esther_jax.train import data as data_lib
+
+    model_cfg = M.config("cpu-tiny", num_frames=4)
+    cfg = train.TrainConfig(steps=4, batch=2, warmup_steps=2, checkpoint_every=2, keep_checkpoints=1)
+    data_cfg = train.DataConfig(frames=4, stride=2, crop_size=model_cfg.crop_size)
+    a = train.train(tmp_path / "a", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False)
+    assert a["steps"] == 4 and (tmp_path / "a" / "model" / "weights.eqx").is_file()
+
+    clean = data_lib.load_batch
+
+    def poisoned(windows, dcfg, batch, seed, step):
+        clips_b, targets_b = clean(windows, dcfg, batch, seed, step)
+        if step == 2:
+            targets_b = dataclasses.replace(targets_b, joints=targets_b.joints.at[0, 1, 5].set(jnp.nan))
+        return clips_b, targets_b
+
+    monkeypatch.setattr(data_lib, "load_batch", poisoned)
+    with pytest.raises(train.NonFiniteLoss, match=r"step 2: the loss is nan \(non-finite terms: .*joints"):
+        train.train(tmp_path / "b", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False)
+    assert (tmp_path / "b" / "checkpoints" / "latest").read_text() == "step_00000002"
+    monkeypatch.setattr(data_lib, "load_batch", clean)
+    with pytest.raises(ValueError, match="already holds a run"):
+        train.train(tmp_path / "b", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False)
+    b = train.train(tmp_path / "b", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False, resume=True)
+    assert b["resumed_from"] == 2 and b["steps"] == 4
+
+    def log(run):
+        return [json.loads(line) for line in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+
+    la, lb = log("a"), log("b")
+    assert [e["step"] for e in lb] == [1, 2, 3, 4]  # no duplicate after the resume
+    for ea, eb in zip(la, lb):
+        assert ea["loss"] == eb["loss"] and ea["grad_norm"] == eb["grad_norm"], (ea["step"], ea["loss"], eb["loss"])
+    net_a, net_b = M.load(tmp_path / "a" / "model"), M.load(tmp_path / "b" / "model")
+    for x, y in zip(jax.tree.leaves(net_a), jax.tree.leaves(net_b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert sorted(p.name for p in (tmp_path / "b" / "checkpoints").iterdir()) == ["latest", "step_00000004"]
+    record = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert record["train"]["steps"] == 4 and record["model"]["name"] == model_cfg.name and "git_revision" in record
+    assert set(la[0]) >= {"loss", "grad_norm", "learning_rate", "clips_per_s", "loss/joints", "loss/two_d"}

@@ -1,6 +1,7 @@
 """Training the ESTHER network (appendices B, C, E): the losses term by term
 (`losses`), token masking and image augmentation (`masking`), windows of clip folders
-and reproducible batches (`data`)."""
+and reproducible batches (`data`), the optimiser, the jitted step and run folders that
+resume bit for bit (`loop`)."""
 
 from .data import DataConfig as DataConfig
 from .data import Window as Window
@@ -30,3 +31,13 @@ from .masking import dropped_views as dropped_views
 from .masking import example_key as example_key
 from .masking import kept_views as kept_views
 from .masking import motion_mask as motion_mask
+from .loop import NonFiniteLoss as NonFiniteLoss
+from .loop import TrainConfig as TrainConfig
+from .loop import Trainer as Trainer
+from .loop import TrainState as TrainState
+from .loop import decay_mask as decay_mask
+from .loop import load_checkpoint as load_checkpoint
+from .loop import make_optimizer as make_optimizer
+from .loop import save_checkpoint as save_checkpoint
+from .loop import stage_spec as stage_spec
+from .loop import train as train

@@ -106,13 +106,13 @@ class Targets(eqx.Module):
     """What one clip is supervised with (right-hand frame: left hands arrive mirrored),
     rig frame, metres: ground truth (`gt.npz`) or the teacher's labels (`labels.npz`)."""
 
-    global_orient: Float[Array, "T 3"]
-    hand_pose: Float[Array, "T 15 3"]
-    betas: Float[Array, "10"]
-    transl: Float[Array, "T 3"]
+    global_orient: Float[Array, "*batch T 3"]
+    hand_pose: Float[Array, "*batch T 15 3"]
+    betas: Float[Array, "*batch 10"]
+    transl: Float[Array, "*batch T 3"]
     """Wrist position."""
-    joints: Float[Array, "T 21 3"]
-    valid: Bool[Array, "T"]
+    joints: Float[Array, "*batch T 21 3"]
+    valid: Bool[Array, "*batch T"]
     """Frames with a 3D target (on screen in the ground truth; the teacher's `valid`)."""
 
 

@@ -1,0 +1,325 @@
+"""Optimisation (appendix E) and runs that survive interruption.
+
+- `make_optimizer`: AdamW (learning rate 2e-4, cosine schedule after 500 linear warm-up
+  steps), global-norm clipping at 1.0, weight decay only on the weight matrices of
+  dense and convolution layers (norms, biases and learned tokens are not decayed). Only
+  the stage's trainable weights are optimised: a frozen backbone has no optimiser state
+  and no gradient; stage 'image' trains the image encoder (and a trainable backbone)
+  alone, stage 'joint' everything trainable.
+- `Trainer.step`: one jitted step holds the examples' corruption (appendix C), the
+  forward pass, the losses (appendix B), the gradient, clipping, the update and the
+  optional EMA of the weights.
+- `train`: a run folder `RUN/` holding `config.json` (model, training, data, git
+  revision), `index.json` (the training windows), `metrics.jsonl` (every logged step:
+  each loss term, gradient norm, learning rate, clips/s), `checkpoints/step_XXXXXXXX/`
+  written atomically (a temporary folder renamed into place, then the `checkpoints/latest`
+  pointer), the last `keep_checkpoints` kept, and the final network in `RUN/model`
+  (`model.save`, what `model.load` reads). `resume=True` continues from the latest
+  checkpoint bit for bit (the batch and the corruption of a step are pure functions of
+  the seed and the step). A non-finite loss stops the run (`NonFiniteLoss`, naming the
+  step and the terms) and leaves the last good checkpoint as it was.
+"""
+
+import dataclasses
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import tempfile
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .. import mano
+from .. import model as M
+from ..files import atomic_output, read_json, write_json
+from . import data as data_lib
+from .losses import STAGES, LossWeights, clip_loss_terms, combine
+from .masking import AugmentRates, MaskingRates, corrupt, example_key
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    stage: str = "joint"
+    """'image' (stage 1: the image encoder under its guidance) or 'joint' (stage 2)."""
+    steps: int = 1000
+    batch: int = 8
+    learning_rate: float = 2e-4
+    warmup_steps: int = 500
+    weight_decay: float = 0.05
+    """AdamW's decoupled weight decay (the paper gives none; 0.05 as in DINO-style ViT training)."""
+    clip_norm: float = 1.0
+    seed: int = 0
+    ema_decay: float | None = None
+    """EMA of the trainable weights (e.g. 0.999), saved beside them and used for the final model."""
+    checkpoint_every: int = 100
+    keep_checkpoints: int = 3
+
+    def __post_init__(self):
+        if self.stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
+        if self.steps < 1 or self.batch < 1 or self.checkpoint_every < 1 or self.keep_checkpoints < 1:
+            raise ValueError("steps, batch, checkpoint_every and keep_checkpoints must be positive")
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must lie in (0, 1), got {self.ema_decay}")
+
+
+class NonFiniteLoss(RuntimeError):
+    """The loss of a step is NaN or infinite; the message names the step and the terms."""
+
+
+def stage_spec(net: M.ESTHER, stage: str):
+    """Filter spec of the weights a stage trains (`M.trainable`, narrowed for stage 'image'
+    to the image encoder and a trainable backbone)."""
+    spec = M.trainable(net)
+    if stage == "image":
+        off = lambda tree: jax.tree.map(lambda _: False, tree)  # noqa: E731
+        spec = eqx.tree_at(lambda m: (m.motion_encoder, m.fusion_decoder), spec, (off(net.motion_encoder), off(net.fusion_decoder)))
+    return spec
+
+
+def decay_mask(params):
+    """True for the weight matrices of dense and convolution layers (`.weight`, 2+ axes);
+    norms, biases and learned tokens are not decayed."""
+    def decays(path, leaf):
+        return leaf is not None and jax.tree_util.keystr(path).endswith(".weight") and jnp.ndim(leaf) >= 2
+
+    return jax.tree_util.tree_map_with_path(decays, params)
+
+
+def make_optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
+    schedule = optax.warmup_cosine_decay_schedule(
+        init_value=0.0, peak_value=cfg.learning_rate, warmup_steps=cfg.warmup_steps,
+        decay_steps=max(cfg.steps, cfg.warmup_steps + 1), end_value=0.0,
+    )  # fmt: skip
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), optax.adamw(schedule, weight_decay=cfg.weight_decay, mask=decay_mask(params)))
+
+
+class TrainState(eqx.Module):
+    step: jax.Array
+    params: M.ESTHER
+    """The trainable weights (other leaves None)."""
+    opt_state: optax.OptState
+    ema: M.ESTHER | None
+
+
+class Trainer:
+    """The optimiser and the jitted step of one (model, training) configuration."""
+
+    def __init__(self, net: M.ESTHER, cfg: TrainConfig, hand_model: mano.ManoModel, weights: LossWeights = LossWeights(),
+                 masking: MaskingRates = MaskingRates(), augment: AugmentRates = AugmentRates()):  # fmt: skip
+        self.cfg, self.model_cfg, self.hand = cfg, net.config, hand_model
+        params, self.static = eqx.partition(net, stage_spec(net, cfg.stage))
+        self.optimizer = make_optimizer(cfg, params)
+        with jax.numpy_dtype_promotion("standard"):
+            opt_state = self.optimizer.init(params)
+        self._initial = TrainState(jnp.zeros((), jnp.int32), params, opt_state, params if cfg.ema_decay else None)
+        self._weights, self._masking, self._augment = weights, masking, augment
+        self._step = eqx.filter_jit(self._train_step)  # arrays (state, frozen weights, hand model) are arguments, not constants
+
+    def init(self) -> TrainState:
+        return self._initial
+
+    def network(self, state: TrainState, *, ema: bool = False) -> M.ESTHER:
+        return eqx.combine(state.ema if ema and state.ema is not None else state.params, self.static)
+
+    def _train_step(self, static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips: M.ClipInput, targets):
+        cfg, mcfg = self.cfg, self.model_cfg
+        batch = clips.flow.shape[0]
+        keys = jax.vmap(lambda i: example_key(cfg.seed, state.step, i))(jnp.arange(batch))
+        seen, masks = jax.vmap(lambda k, c: corrupt(k, c, mcfg, self._masking, self._augment))(keys, clips)
+
+        def loss_fn(params):
+            net = eqx.combine(params, static)
+
+            def one(clip, target, mask):
+                out = net(clip, hand, motion_mask=mask)
+                return clip_loss_terms(out, clip, target, mask, hand, mcfg, self._weights, crop_size=mcfg.crop_size)
+
+            terms = jax.vmap(one)(seen, targets, masks)
+            return combine(terms, mcfg, cfg.stage, self._weights)
+
+        (loss, means), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(state.params)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with Python floats
+            updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
+        params = eqx.apply_updates(state.params, updates)
+        ema = state.ema
+        if ema is not None:
+            d = cfg.ema_decay
+            ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
+        metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads)}
+        return TrainState(state.step + 1, params, opt_state, ema), metrics
+
+    def step(self, state: TrainState, clips: M.ClipInput, targets) -> tuple[TrainState, dict]:
+        return self._step(self.static, self.hand, state, clips, targets)
+
+    def learning_rate(self, step: int) -> float:
+        cfg = self.cfg
+        schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, cfg.warmup_steps, max(cfg.steps, cfg.warmup_steps + 1), 0.0)
+        with jax.numpy_dtype_promotion("standard"):
+            return float(schedule(step))
+
+
+# ----------------------------------------------------------------------------- run folders
+
+CHECKPOINTS = "checkpoints"
+LATEST = "latest"
+
+
+def _git_revision() -> str | None:
+    try:
+        root = pathlib.Path(__file__).resolve().parents[2]
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def save_checkpoint(run: pathlib.Path, state: TrainState, keep: int) -> pathlib.Path:
+    """`run/checkpoints/step_XXXXXXXX/state.eqx`, atomically, then the `latest` pointer;
+    older checkpoints beyond the last `keep` are removed."""
+    root = run / CHECKPOINTS
+    root.mkdir(parents=True, exist_ok=True)
+    step = int(state.step)
+    final = root / f"step_{step:08d}"
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".step_{step:08d}.", dir=root))
+    try:
+        eqx.tree_serialise_leaves(tmp / "state.eqx", state)
+        write_json(tmp / "meta.json", {"step": step, "time": time.time()})
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    with atomic_output(root / LATEST) as pointer:
+        pointer.write_text(final.name)
+    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def load_checkpoint(run: pathlib.Path, skeleton: TrainState) -> TrainState | None:
+    """The latest checkpoint of `run` read into `skeleton`'s structure; None without one."""
+    pointer = run / CHECKPOINTS / LATEST
+    if not pointer.is_file():
+        return None
+    path = run / CHECKPOINTS / pointer.read_text().strip() / "state.eqx"
+    try:
+        return eqx.tree_deserialise_leaves(path, skeleton)
+    except Exception as err:
+        raise ValueError(f"{path} does not match this run's model and training config: {err}") from err
+
+
+def _run_record(model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.DataConfig, init: str | None) -> dict:
+    return {
+        "model": json.loads(model_cfg.to_json()),
+        "train": dataclasses.asdict(cfg),
+        "data": dataclasses.asdict(data_cfg),
+        "init": init,
+        "git_revision": _git_revision(),
+    }
+
+
+def train(
+    run: str | pathlib.Path,
+    clip_dirs: list[str | pathlib.Path],
+    model_cfg: M.ModelConfig,
+    cfg: TrainConfig = TrainConfig(),
+    *,
+    data_cfg: data_lib.DataConfig | None = None,
+    init: str | pathlib.Path | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    log_every: int = 1,
+) -> dict:
+    """Train into the run folder `run` (module docstring); returns a summary.
+
+    Args:
+        clip_dirs: training clip folders (with crops and targets; `data.build_index`).
+        init: a previous run (e.g. stage 1's) whose final network starts this one.
+        resume: continue `run` from its latest checkpoint (its config must match).
+    """
+    from tqdm import tqdm
+
+    run = pathlib.Path(run)
+    data_cfg = data_cfg or data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
+    if data_cfg.frames > model_cfg.num_frames or data_cfg.crop_size != model_cfg.crop_size:
+        raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
+                         f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
+    record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
+    config_path, index_path, metrics_path = run / "config.json", run / "index.json", run / "metrics.jsonl"
+    if config_path.exists():
+        if not resume:
+            raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
+        previous = read_json(config_path)
+        for part in ("model", "train", "data"):
+            if previous.get(part) != json.loads(json.dumps(record[part])):
+                raise ValueError(f"{run} was started with another {part} config: resume with the same settings")
+        windows, _ = data_lib.load_index(index_path)
+    else:
+        windows = data_lib.build_index(clip_dirs, data_cfg)
+        if not windows:
+            raise ValueError(f"no training window in {len(clip_dirs)} clip folders (need crops/<side>.npz and targets, "
+                             f"at least {data_cfg.frames} frames)")  # fmt: skip
+        run.mkdir(parents=True, exist_ok=True)
+        data_lib.save_index(index_path, windows, data_cfg)
+        write_json(config_path, record)
+
+    hand = mano.load_builtin("right")
+    net = M.ESTHER(model_cfg, key=jax.random.key(cfg.seed))
+    if init is not None:
+        net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
+        if net.config != model_cfg:
+            raise ValueError(f"--init {init} is a {net.config.name} network; this run trains {model_cfg.name}")
+    trainer = Trainer(net, cfg, hand)
+    state = trainer.init()
+    restored = load_checkpoint(run, state) if resume else None
+    if restored is not None:
+        state = restored
+    start = int(state.step)
+    _truncate_metrics(metrics_path, start)
+
+    t0, last = time.perf_counter(), time.perf_counter()
+    bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not progress)
+    with open(metrics_path, "a") as log:
+        for step in range(start, cfg.steps):
+            clips_b, targets_b = data_lib.load_batch(windows, data_cfg, cfg.batch, cfg.seed, step)
+            new_state, metrics = trainer.step(state, clips_b, targets_b)
+            values = {k: float(v) for k, v in jax.device_get(metrics).items()}
+            if not np.isfinite(values["loss"]):
+                bad = sorted(k.split("/", 1)[1] for k, v in values.items() if k.startswith("loss/") and not np.isfinite(v))
+                raise NonFiniteLoss(
+                    f"step {step}: the loss is {values['loss']} (non-finite terms: {', '.join(bad) or 'none; the weighted sum overflowed'}); "
+                    f"the run stopped, its last good checkpoint is kept in {run / CHECKPOINTS}"
+                )
+            state = new_state
+            now = time.perf_counter()
+            if (step + 1) % log_every == 0 or step + 1 == cfg.steps:
+                entry = {"step": step + 1, **values, "learning_rate": trainer.learning_rate(step), "clips_per_s": cfg.batch / max(now - last, 1e-9)}
+                log.write(json.dumps(entry) + "\n")
+                log.flush()
+            last = now
+            if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps:
+                save_checkpoint(run, state, cfg.keep_checkpoints)
+            bar.update(1)
+            bar.set_postfix(loss=f"{values['loss']:.4f}")
+    bar.close()
+    final = M.save(run / "model", trainer.network(state, ema=cfg.ema_decay is not None))
+    return {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0, "model": str(final)}
+
+
+def _truncate_metrics(path: pathlib.Path, step: int) -> None:
+    """Drop logged steps after `step` (a resumed run logs them again): no duplicates."""
+    if not path.exists():
+        return
+    kept = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
+    with atomic_output(path) as tmp:
+        tmp.write_text("".join(line + "\n" for line in kept))
+
+
+__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "decay_mask", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]
