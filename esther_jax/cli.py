@@ -48,6 +48,27 @@ def main(argv: list[str] | None = None) -> int:
         help="fit your official MANO models, DIR/MANO_RIGHT.pkl and DIR/MANO_LEFT.pkl (or DIR/models/...), "
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
+    train = commands.add_parser("train", help="train the ESTHER network on clip folders (appendices B, C, E)")
+    train.add_argument("--config", default="cpu-small", help="model config: paper, cpu-small, cpu-tiny (default cpu-small)")
+    train.add_argument("--data", nargs="+", required=True, help="clip folders (or folders of clips) with crops and targets")
+    train.add_argument("--out", required=True, help="run folder (config.json, checkpoints/, metrics.jsonl, model/)")
+    train.add_argument("--stage", default="joint", choices=["image", "joint"], help="image: stage 1 (image encoder); joint: stage 2")
+    train.add_argument("--init", help="start from a previous run's network (e.g. stage 1's run folder)")
+    train.add_argument("--resume", action="store_true", help="continue --out from its latest checkpoint")
+    train.add_argument("--steps", type=int, default=1000)
+    train.add_argument("--batch", type=int, default=8)
+    train.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (appendix E: 2e-4)")
+    train.add_argument("--warmup", type=int, default=500, help="linear warm-up steps (appendix E: 500)")
+    train.add_argument("--ablation", help="a table-5 row (esther_jax.model.ABLATIONS)")
+    train.add_argument("--frames", type=int, help="window length (the config's num_frames by default: 16)")
+    train.add_argument("--targets", default="gt", choices=["gt", "labels"], help="gt.npz of synthetic clips, or the teacher's labels")
+    train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
+    train.add_argument("--checkpoint-every", type=int, default=100)
+    train.add_argument("--seed", type=int, default=0)
+    predict = commands.add_parser("predict", help="a trained network's hands for clip folders, in the labels format")
+    predict.add_argument("--model", required=True, help="a run folder of esther train (or its model/ folder)")
+    predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
+    predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
     args = parser.parse_args(argv)
     try:  # before minutes of work: the output folder (every command has one) must be a writable folder
         check_out_dir(args.out)
@@ -80,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"esther synth: {err}", file=sys.stderr)
             return 2
         print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")
+    elif args.command == "train":
+        return _train(args)
+    elif args.command == "predict":
+        return _predict(args)
     elif args.command == "evaluate":
         from .eval import evaluate_folders
 
@@ -110,19 +135,9 @@ def _label(args) -> int:
     from fitting import label_clips, read_reject_list
     from fitting.label import review_clip
 
-    from .clips import ClipFormatError, list_clips
-
-    clips = []
-    for path in args.clips:
-        try:
-            found = list_clips(path)
-        except ClipFormatError as err:
-            print(f"esther label: {err}", file=sys.stderr)
-            return 2
-        if not found:
-            print(f"esther label: no clip found in {path} (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)", file=sys.stderr)
-            return 2
-        clips.extend(found)
+    clips = _clip_folders(args.clips, "label")
+    if clips is None:
+        return 2
     try:
         rejects = read_reject_list(args.reject) if args.reject else frozenset()
         models, sources = _mano_models(args.mano) if args.mano else (None, None)
@@ -142,6 +157,65 @@ def _label(args) -> int:
         f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
     )
     write_json(pathlib.Path(args.out) / "label_summary.json", result)
+    return 1 if result["failed"] else 0
+
+
+def _clip_folders(paths: list[str], command: str) -> list[pathlib.Path] | None:
+    """The clip folders under `paths` (each a clip or a folder of clips); None (after
+    saying why) when a path is not a folder or holds no clip."""
+    from .clips import ClipFormatError, list_clips
+
+    found = []
+    for path in paths:
+        try:
+            more = list_clips(path)
+        except ClipFormatError as err:
+            print(f"esther {command}: {err}", file=sys.stderr)
+            return None
+        if not more:
+            print(f"esther {command}: no clip found in {path} (a clip folder holds rig.json, meta.json and hands/)", file=sys.stderr)
+            return None
+        found += more
+    return found
+
+
+def _train(args) -> int:
+    from . import model as M
+    from . import train
+
+    data = _clip_folders(args.data, "train")
+    if data is None:
+        return 2
+    try:
+        model_cfg = M.config(args.config, ablation=args.ablation, **({"num_frames": args.frames} if args.frames else {}))
+        cfg = train.TrainConfig(stage=args.stage, steps=args.steps, batch=args.batch, learning_rate=args.lr,
+                                warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every)  # fmt: skip
+        data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels)
+        summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, init=args.init, resume=args.resume)
+    except train.NonFiniteLoss as err:
+        print(f"esther train: {err}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError) as err:  # bad configs, folders, a run that exists, a mismatched resume
+        print(f"esther train: {err}", file=sys.stderr)
+        return 2
+    print(f"trained {summary['steps']} steps (from step {summary['resumed_from']}) in {summary['seconds']:.0f} s -> {summary['model']}")
+    return 0
+
+
+def _predict(args) -> int:
+    from .model.folders import predict_folders
+
+    clip_dirs = _clip_folders(args.clips, "predict")
+    if clip_dirs is None:
+        return 2
+    try:
+        result = predict_folders(args.model, clip_dirs, args.out)
+    except (OSError, ValueError) as err:  # no saved network there, a damaged one
+        print(f"esther predict: {err}", file=sys.stderr)
+        return 2
+    for failure in result["failed"]:
+        print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+    print(f"predicted {len(result['predicted'])} clips, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}")
     return 1 if result["failed"] else 0
 
 

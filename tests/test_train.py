@@ -421,3 +421,22 @@ def test_a_run_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path, monkey
     record = json.loads((tmp_path / "a" / "config.json").read_text())
     assert record["train"]["steps"] == 4 and record["model"]["name"] == model_cfg.name and "git_revision" in record
     assert set(la[0]) >= {"loss", "grad_norm", "learning_rate", "clips_per_s", "loss/joints", "loss/two_d"}
+
+
+def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, capsys):
+    """esther train -> esther predict -> esther evaluate, on a synthetic clip folder."""
+    from esther_jax import cli
+
+    clips_root = str(synth_clip.parent)
+    run = tmp_path / "run"
+    args = ["train", "--config", "cpu-tiny", "--frames", "4", "--data", clips_root, "--out", str(run),
+            "--steps", "2", "--batch", "2", "--warmup", "1", "--checkpoint-every", "1"]  # fmt: skip
+    assert cli.main(args) == 0
+    assert "trained 2 steps" in capsys.readouterr().out
+    assert cli.main(args) == 2 and "already holds a run" in capsys.readouterr().err
+    assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
+    labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
+    assert labels["right"]["joints"].shape == (8, 21, 3) and labels["left"]["valid"].dtype == bool
+    assert cli.main(["evaluate", "--pred", str(tmp_path / "pred"), "--gt", clips_root, "--out", str(tmp_path / "ev")]) == 0
+    assert "identity" not in capsys.readouterr().err  # the predictions record their source clip
+    assert cli.main(["predict", "--model", str(tmp_path / "nowhere"), clips_root, "--out", str(tmp_path / "p2")]) == 2

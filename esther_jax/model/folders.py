@@ -1,0 +1,129 @@
+"""`esther predict`: a trained network's hands for clip folders, in the labels format.
+
+For each clip and hand with crops (`crops/<side>.npz`), the clip is cut into windows of
+the network's `num_frames` (the last one shifted back to end at the last frame; a
+shorter clip is one window), each window is predicted (`predict`: left hands mirrored
+and un-mirrored, the on-screen gate applied), and every frame takes the prediction of
+the first window that covers it. A view whose crop box lies wholly outside its image is
+absent. The output, `<out>/<clip>/hands/<side>/labels.npz`, has the keys of the
+teacher's labels with `valid = emitted` (the frames the gate emits) and
+`onscreen = emitted`, the clip's shape the mean of its windows' shapes, and `meta.json`
+records the model (`mano_model`: the built-in hand) and the source clip's digest, so
+`esther evaluate` scores it unchanged.
+"""
+
+import pathlib
+import shutil
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import clips, mano
+from ..cameras import StereoRig
+from ..crops import resize_crops
+from ..files import check_out_dir, exclusive_lock, remove_stale_partials
+from .esther import ESTHER, ClipInput, load, predict
+
+
+def _window_starts(frames: int, window: int) -> list[int]:
+    if frames <= window:
+        return [0]
+    return sorted(set(list(range(0, frames - window + 1, window)) + [frames - window]))
+
+
+def _views_present(rig: StereoRig, box: np.ndarray) -> np.ndarray:
+    """(T, 2): the crop box (x0, y0, x1, y1, source pixels) overlaps its view's image."""
+    size = np.array([[rig.left.width, rig.left.height], [rig.right.width, rig.right.height]], np.float64)
+    lo, hi = box[..., :2], box[..., 2:]
+    return np.all((hi > -0.5) & (lo < size - 0.5) & (hi > lo), axis=-1) & np.all(np.isfinite(box), axis=-1)
+
+
+def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig) -> dict[str, np.ndarray]:
+    """One hand of one clip folder, every frame, as labels arrays."""
+    path = clip_dir / "crops" / f"{side}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            crops = {k: data[k] for k in ("images", "K", "R_cam_crop", "flow", "box")}
+    except (OSError, ValueError, KeyError) as err:
+        raise clips.ClipFormatError(f"{path} is not a crops file (images, K, R_cam_crop, flow, box): {err}") from err
+    cfg = net.config
+    images, K = resize_crops(crops["images"], crops["K"], cfg.crop_size)
+    if images.ndim == 4:
+        images = np.repeat(images[..., None], 3, axis=-1)
+    T = images.shape[0]
+    present = _views_present(rig, np.asarray(crops["box"], np.float64))
+    images = np.where(present[:, :, None, None, None], images, 0)
+    dtype = jnp.result_type(float)
+    W = min(cfg.num_frames, T)
+    starts = _window_starts(T, W)
+    windows = [
+        ClipInput(
+            images=jnp.asarray(np.moveaxis(images[s : s + W], -1, 2), dtype) / 255.0, features=None,
+            K=jnp.asarray(K[s : s + W], dtype), R_cam_crop=jnp.asarray(crops["R_cam_crop"][s : s + W], dtype),
+            T_rig_cams=jnp.asarray(rig.T_rig_cams, dtype), flow=jnp.asarray(crops["flow"][s : s + W], dtype),
+            view_present=jnp.asarray(present[s : s + W]),
+        )
+        for s in starts
+    ]  # fmt: skip
+    batch = jax.tree.map(lambda *x: jnp.stack(x), *windows)
+    out = jax.device_get(predict(net, batch, mano.load_builtin("right"), is_right=side == "right"))
+    owner = np.full(T, -1)
+    for i, s in reversed(list(enumerate(starts))):
+        owner[s : s + W] = i  # the first window covering a frame wins
+    offset = np.arange(T) - np.asarray(starts)[owner]
+    take = lambda a: np.asarray(a)[owner, offset]  # noqa: E731
+    emitted = take(out.emitted).astype(bool)
+    return {
+        "global_orient": take(out.params.global_orient).astype(np.float32),
+        "hand_pose": take(out.params.hand_pose).astype(np.float32),
+        "betas": np.asarray(out.params.betas).reshape(-1, 10).mean(axis=0).astype(np.float32),
+        "transl": take(out.params.transl).astype(np.float32),
+        "joints": take(out.joints).astype(np.float32),
+        "onscreen": emitted,
+        "valid": emitted,
+        "residual_px": np.full(T, np.nan, np.float32),
+        "onscreen_prob": take(out.onscreen_prob).astype(np.float32),
+    }
+
+
+def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib.Path], out_dir: str | pathlib.Path, *, progress: bool = True) -> dict:
+    """Predict every hand with crops of `clip_dirs` with the network saved in `model_dir`
+    (a run folder's `model/`, or the run folder) into `out_dir` (labels format, each
+    clip written atomically under its lock). Per-clip failures are collected."""
+    from tqdm import tqdm
+
+    model_dir = pathlib.Path(model_dir)
+    net = load(model_dir / "model" if (model_dir / "model").is_dir() else model_dir)
+    out_dir = check_out_dir(out_dir)
+    done, failed = [], []
+    for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="predict", unit="clip", disable=not progress):
+        try:
+            meta = clips.read_meta(clip)
+            rig = StereoRig.from_json(clip / "rig.json")
+            sides = [s for s in clips.SIDES if (clip / "crops" / f"{s}.npz").is_file()]
+            if not sides:
+                raise clips.ClipFormatError(f"{clip} has no crops/<side>.npz (esther synth --crops, or your crops)")
+            with exclusive_lock(out_dir / f".{clip.name}.lock"):
+                remove_stale_partials(out_dir, clip.name)
+                tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{clip.name}.partial-", dir=out_dir))
+                try:
+                    for side in sides:
+                        clips.save_npz(clips.hand_file(tmp, side, "labels"), **predict_hand(net, clip, side, rig))
+                    record = {side: {"id": mano.model_id(mano.load_builtin(side)), "source": "builtin"} for side in sides}
+                    source = {"name": clip.name, "digest": clips.clip_digest(clip)}
+                    clips.write_meta(tmp, **{**meta, "labelled_by": f"esther predict ({net.config.name})", "mano_model": record, "source_clip": source})
+                    final = out_dir / clip.name
+                    if final.exists():
+                        shutil.rmtree(final)
+                    tmp.rename(final)
+                finally:
+                    shutil.rmtree(tmp, ignore_errors=True)
+            done.append(clip.name)
+        except Exception as err:  # a bad clip never stops the batch
+            failed.append({"clip": str(clip), "error": f"{type(err).__name__}: {err}"})
+    return {"predicted": done, "failed": failed, "out": str(out_dir)}
+
+
+__all__ = ["predict_folders", "predict_hand"]
