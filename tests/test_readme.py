@@ -1,5 +1,5 @@
 """The README's code runs as written: its Python blocks in order, in a folder holding
-the clip its text says to make (`esther synth --out clips --clips 1 --frames 16 --crops`)."""
+the clip its text says to make (`esther synth --out clips --clips 1 --frames 16 --crops --crop-size 64`)."""
 
 import pathlib
 import re
@@ -14,7 +14,7 @@ def test_readme_python_blocks_run_on_a_synthetic_clip(tmp_path, monkeypatch, cap
     from esther_jax import cli
 
     text = README.read_text()
-    command = "esther synth --out clips --clips 1 --frames 16 --crops"
+    command = "esther synth --out clips --clips 1 --frames 16 --crops --crop-size 64"
     assert command in text
     monkeypatch.chdir(tmp_path)
     assert cli.main(command.split()[1:]) == 0

@@ -120,7 +120,6 @@ class Trainer:
             opt_state = self.optimizer.init(params)
         self._initial = TrainState(jnp.zeros((), jnp.int32), params, opt_state, params if cfg.ema_decay else None)
         self._weights, self._masking, self._augment = weights, masking, augment
-        self._step = eqx.filter_jit(self._train_step)  # arrays (state, frozen weights, hand model) are arguments, not constants
 
     def init(self) -> TrainState:
         return self._initial
@@ -128,41 +127,54 @@ class Trainer:
     def network(self, state: TrainState, *, ema: bool = False) -> M.ESTHER:
         return eqx.combine(state.ema if ema and state.ema is not None else state.params, self.static)
 
-    def _train_step(self, static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips: M.ClipInput, targets):
-        cfg, mcfg = self.cfg, self.model_cfg
-        batch = clips.flow.shape[0]
-        keys = jax.vmap(lambda i: example_key(cfg.seed, state.step, i))(jnp.arange(batch))
-        seen, masks = jax.vmap(lambda k, c: corrupt(k, c, mcfg, self._masking, self._augment))(keys, clips)
-
-        def loss_fn(params):
-            net = eqx.combine(params, static)
-
-            def one(clip, target, mask):
-                out = net(clip, hand, motion_mask=mask)
-                return clip_loss_terms(out, clip, target, mask, hand, mcfg, self._weights, crop_size=mcfg.crop_size)
-
-            terms = jax.vmap(one)(seen, targets, masks)
-            return combine(terms, mcfg, cfg.stage, self._weights)
-
-        (loss, means), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(state.params)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with Python floats
-            updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
-        params = eqx.apply_updates(state.params, updates)
-        ema = state.ema
-        if ema is not None:
-            d = cfg.ema_decay
-            ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
-        metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads)}
-        return TrainState(state.step + 1, params, opt_state, ema), metrics
-
     def step(self, state: TrainState, clips: M.ClipInput, targets) -> tuple[TrainState, dict]:
-        return self._step(self.static, self.hand, state, clips, targets)
+        settings = (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
+        return _train_step(self.static, self.hand, state, clips, targets, settings)
 
     def learning_rate(self, step: int) -> float:
         cfg = self.cfg
         schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, cfg.warmup_steps, max(cfg.steps, cfg.warmup_steps + 1), 0.0)
         with jax.numpy_dtype_promotion("standard"):
             return float(schedule(step))
+
+
+def _step_settings(cfg: TrainConfig) -> TrainConfig:
+    """`cfg` with the fields the step does not read reset: runs that differ only in
+    checkpointing share one compiled step."""
+    return dataclasses.replace(cfg, checkpoint_every=1, keep_checkpoints=1)
+
+
+@eqx.filter_jit
+def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips: M.ClipInput, targets, settings):
+    """One optimisation step over a batch (leading axis). The arrays (state, frozen
+    weights, hand model, batch) are arguments, not constants of the program; `settings`
+    (configs, hashable) are static, so every Trainer of the same settings shares it."""
+    cfg, mcfg, weights, masking, augment = settings
+    batch = clips.flow.shape[0]
+    keys = jax.vmap(lambda i: example_key(cfg.seed, state.step, i))(jnp.arange(batch))
+    seen, masks = jax.vmap(lambda k, c: corrupt(k, c, mcfg, masking, augment))(keys, clips)
+
+    def loss_fn(params):
+        net = eqx.combine(params, static)
+
+        def one(clip, target, mask):
+            out = net(clip, hand, motion_mask=mask)
+            return clip_loss_terms(out, clip, target, mask, hand, mcfg, weights, crop_size=mcfg.crop_size)
+
+        terms = jax.vmap(one)(seen, targets, masks)
+        return combine(terms, mcfg, cfg.stage, weights)
+
+    (loss, means), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(state.params)
+    optimizer = make_optimizer(cfg, state.params)
+    with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with Python floats
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = eqx.apply_updates(state.params, updates)
+    ema = state.ema
+    if ema is not None:
+        d = cfg.ema_decay
+        ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
+    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads)}
+    return TrainState(state.step + 1, params, opt_state, ema), metrics
 
 
 # ----------------------------------------------------------------------------- run folders
