@@ -211,7 +211,7 @@ def label_clips(
         with _clip_lock(out_dir, clip.name, wait=wait) as locked:
             if not locked:
                 return False
-            finished = _labelled_with(meta_path, wanted)
+            finished = _labelled_with(meta_path, wanted) and _made_from(meta_path, clip)
             if finished and (resume or (wait and meta_path.stat().st_mtime >= started)):
                 skipped.append(clip.name)  # done before (--resume), or by the other process just now
                 return True
@@ -229,6 +229,17 @@ def label_clips(
     for clip in busy:  # another process holds them: wait, then skip what it finished
         attempt(clip, wait=True)
     return {"labelled": done, "skipped": skipped, "failed": failed, "hand_frames": frames, "seconds": seconds}
+
+
+def _made_from(meta_path: pathlib.Path, clip: pathlib.Path) -> bool:
+    """False when finished labels record another source clip than `clip` (same folder
+    name, other content): they are redone, not kept by --resume. Labels that record no
+    source (older ones) count as made from it."""
+    try:
+        source = json.loads(meta_path.read_text()).get("source_clip")
+        return not isinstance(source, dict) or source.get("digest") == clips.clip_digest(clip)
+    except (OSError, ValueError, AttributeError):
+        return False  # unreadable labels or clip: label again (a bad clip then reports its error)
 
 
 def _labelled_with(meta_path: pathlib.Path, wanted: dict[str, str]) -> bool:

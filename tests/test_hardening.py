@@ -10,6 +10,7 @@ file handling, which do not depend on the fits (tests/test_fitting.py runs the t
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -251,6 +252,20 @@ def test_label_cli_usage_errors_come_before_any_work(tmp_path, capsys, fake_teac
     captured = capsys.readouterr()
     assert "FAILED" in captured.err and "thirty" in captured.err and "labelled 1 clips" in captured.out
     json.loads((tmp_path / "labels" / "label_summary.json").read_text(), parse_constant=pytest.fail)
+
+
+def test_resume_redoes_labels_of_another_clip_with_the_same_name(tmp_path, fake_teacher):
+    clip = _tiny_clip(tmp_path / "clips" / "clip_x", seed=0)
+    first = label_module.label_clips([clip], tmp_path / "labels", progress=False)
+    assert len(first["labelled"]) == 1
+    again = label_module.label_clips([clip], tmp_path / "labels", resume=True, progress=False)
+    assert again["skipped"] == ["clip_x"]
+    shutil.rmtree(clip)
+    _tiny_clip(tmp_path / "clips" / "clip_x", seed=5)  # another clip under the same name
+    redone = label_module.label_clips([clip], tmp_path / "labels", resume=True, progress=False)
+    assert [s["clip"] for s in redone["labelled"]] == ["clip_x"] and not redone["skipped"]
+    meta = json.loads((tmp_path / "labels" / "clip_x" / "meta.json").read_text())
+    assert meta["source_clip"]["digest"] == clips.clip_digest(clip)
 
 
 _WORKER = textwrap.dedent(
