@@ -128,8 +128,11 @@ class Trainer:
         return eqx.combine(state.ema if ema and state.ema is not None else state.params, self.static)
 
     def step(self, state: TrainState, clips: M.ClipInput, targets) -> tuple[TrainState, dict]:
-        settings = (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
-        return _train_step(self.static, self.hand, state, clips, targets, settings)
+        """One optimisation step over a batch (leading axis): (new state, metrics)."""
+        return _train_step(self.static, self.hand, state, clips, targets, self._settings())
+
+    def _settings(self):
+        return (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
 
     def learning_rate(self, step: int) -> float:
         cfg = self.cfg
