@@ -23,3 +23,18 @@ def finite_difference_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
         e = e.reshape(x.shape)
         cols.append((np.asarray(f(jnp.asarray(x + e))) - np.asarray(f(jnp.asarray(x - e)))).reshape(-1) / (2 * h))
     return np.stack(cols, axis=-1)
+
+
+def aimed_crop_cameras(rig, size: int, focal: float, target=(0.0, 0.05, 0.4)):
+    """Crop intrinsics K (3, 3) of an S x S crop with focal length `focal` (pixels) and
+    each view's crop rotation R_cam_crop (2, 3, 3) aiming its optical axis at `target`
+    (rig frame, metres): the crop cameras of a hand held there."""
+    K = jnp.asarray([[focal, 0.0, size / 2 - 0.5], [0.0, focal, size / 2 - 0.5], [0.0, 0.0, 1.0]])
+    R = []
+    for v in range(2):
+        d = jnp.asarray(target) - rig.T_rig_cams[v, :3, 3]
+        z = d / jnp.linalg.norm(d)
+        x = jnp.cross(jnp.asarray([0.0, 1.0, 0.0]), z)
+        x = x / jnp.linalg.norm(x)
+        R.append(jnp.stack([x, jnp.cross(z, x), z], axis=1))
+    return K, jnp.stack(R)

@@ -18,6 +18,8 @@ from esther_jax.mano import MANO_PARENTS, load_builtin
 from esther_jax.model._layers import Mlp
 from esther_jax.triangulation import triangulate
 
+from .helpers import aimed_crop_cameras
+
 FRAMES = 4
 TINY = M.config("cpu-tiny", num_frames=FRAMES)
 
@@ -32,18 +34,8 @@ def random_clip(key, cfg=TINY, frames=FRAMES, features=False):
     S = cfg.crop_size
     rig = rig_preset("esther")
     k1, k2 = jax.random.split(key)
-    f = 1.2 * S
-    K = jnp.asarray([[f, 0.0, S / 2 - 0.5], [0.0, f, S / 2 - 0.5], [0.0, 0.0, 1.0]])
-    # aim each crop camera at (0, 0.05, 0.4) in the rig frame
-    target = jnp.asarray([0.0, 0.05, 0.4])
-    R = []
-    for v in range(2):
-        d = target - rig.T_rig_cams[v, :3, 3]
-        z = d / jnp.linalg.norm(d)
-        x = jnp.cross(jnp.asarray([0.0, 1.0, 0.0]), z)
-        x = x / jnp.linalg.norm(x)
-        R.append(jnp.stack([x, jnp.cross(z, x), z], axis=1))
-    R = jnp.broadcast_to(jnp.stack(R), (frames, 2, 3, 3))
+    K, R = aimed_crop_cameras(rig, S, 1.2 * S)  # aimed at (0, 0.05, 0.4) in the rig frame
+    R = jnp.broadcast_to(R, (frames, 2, 3, 3))
     P, C = cfg.grid**2, cfg.backbone_spec.width
     return M.ClipInput(
         images=None if features else jax.random.uniform(k1, (frames, 2, 3, S, S)),

@@ -22,6 +22,8 @@ from esther_jax.model.motion_encoder import MotionEvidence
 from esther_jax.model.stereo_encoder import ImageEvidence
 from esther_jax.rotations import axis_angle_to_matrix, matrix_to_rotation_6d
 
+from .helpers import aimed_crop_cameras
+
 T, S = 4, 64
 CFG = M.config("cpu-tiny", num_frames=T)
 
@@ -34,21 +36,12 @@ def hand():
 def _clip(images=True, frames=T) -> M.ClipInput:
     """Crop cameras of both views aimed at a hand 0.4 m ahead (as the model tests do)."""
     rig = rig_preset("esther")
-    f = 0.6 * S  # wide: the whole hand inside both crops
-    K = jnp.asarray([[f, 0.0, S / 2 - 0.5], [0.0, f, S / 2 - 0.5], [0.0, 0.0, 1.0]])
-    target = jnp.asarray([0.0, 0.05, 0.4])
-    R = []
-    for v in range(2):
-        d = target - rig.T_rig_cams[v, :3, 3]
-        z = d / jnp.linalg.norm(d)
-        x = jnp.cross(jnp.asarray([0.0, 1.0, 0.0]), z)
-        x = x / jnp.linalg.norm(x)
-        R.append(jnp.stack([x, jnp.cross(z, x), z], axis=1))
+    K, R = aimed_crop_cameras(rig, S, 0.6 * S)  # wide: the whole hand inside both crops
     return M.ClipInput(
         images=jax.random.uniform(jax.random.key(0), (frames, 2, 3, S, S)) if images else None,
         features=None,
         K=jnp.broadcast_to(K, (frames, 2, 3, 3)),
-        R_cam_crop=jnp.broadcast_to(jnp.stack(R), (frames, 2, 3, 3)),
+        R_cam_crop=jnp.broadcast_to(R, (frames, 2, 3, 3)),
         T_rig_cams=rig.T_rig_cams,
         flow=jnp.zeros((frames, 192)),
         view_present=jnp.ones((frames, 2), bool),

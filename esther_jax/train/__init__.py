@@ -36,6 +36,7 @@ from .loop import TrainConfig as TrainConfig
 from .loop import Trainer as Trainer
 from .loop import TrainState as TrainState
 from .loop import decay_mask as decay_mask
+from .loop import learning_rate_schedule as learning_rate_schedule
 from .loop import load_checkpoint as load_checkpoint
 from .loop import make_optimizer as make_optimizer
 from .loop import save_checkpoint as save_checkpoint

@@ -11,7 +11,7 @@
   optional EMA of the weights.
 - `train`: a run folder `RUN/` holding `config.json` (model, training, data, git
   revision), `index.json` (the training windows), `metrics.jsonl` (every logged step:
-  each loss term, gradient norm, learning rate, clips/s), `checkpoints/step_XXXXXXXX/`
+  each loss term, gradient norm, learning rate, clips/s), `checkpoints/step_<step, 8 digits>/`
   written atomically (a temporary folder renamed into place, then the `checkpoints/latest`
   pointer), the last `keep_checkpoints` kept, and the final network in `RUN/model`
   (`model.save`, what `model.load` reads). `resume=True` continues from the latest
@@ -92,12 +92,19 @@ def decay_mask(params):
     return jax.tree_util.tree_map_with_path(decays, params)
 
 
-def make_optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
-    schedule = optax.warmup_cosine_decay_schedule(
+def learning_rate_schedule(cfg: TrainConfig) -> optax.Schedule:
+    """Linear warm-up to the peak, then cosine decay to 0 at the last step."""
+    return optax.warmup_cosine_decay_schedule(
         init_value=0.0, peak_value=cfg.learning_rate, warmup_steps=cfg.warmup_steps,
         decay_steps=max(cfg.steps, cfg.warmup_steps + 1), end_value=0.0,
     )  # fmt: skip
-    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), optax.adamw(schedule, weight_decay=cfg.weight_decay, mask=decay_mask(params)))
+
+
+def make_optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
+    return optax.chain(
+        optax.clip_by_global_norm(cfg.clip_norm),
+        optax.adamw(learning_rate_schedule(cfg), weight_decay=cfg.weight_decay, mask=decay_mask(params)),
+    )
 
 
 class TrainState(eqx.Module):
@@ -115,9 +122,8 @@ class Trainer:
                  masking: MaskingRates = MaskingRates(), augment: AugmentRates = AugmentRates()):  # fmt: skip
         self.cfg, self.model_cfg, self.hand = cfg, net.config, hand_model
         params, self.static = eqx.partition(net, stage_spec(net, cfg.stage))
-        self.optimizer = make_optimizer(cfg, params)
         with jax.numpy_dtype_promotion("standard"):
-            opt_state = self.optimizer.init(params)
+            opt_state = make_optimizer(cfg, params).init(params)  # the step rebuilds the same optimiser from cfg
         self._initial = TrainState(jnp.zeros((), jnp.int32), params, opt_state, params if cfg.ema_decay else None)
         self._weights, self._masking, self._augment = weights, masking, augment
 
@@ -135,10 +141,8 @@ class Trainer:
         return (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
 
     def learning_rate(self, step: int) -> float:
-        cfg = self.cfg
-        schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, cfg.warmup_steps, max(cfg.steps, cfg.warmup_steps + 1), 0.0)
         with jax.numpy_dtype_promotion("standard"):
-            return float(schedule(step))
+            return float(learning_rate_schedule(self.cfg)(step))
 
 
 def _step_settings(cfg: TrainConfig) -> TrainConfig:
@@ -196,7 +200,8 @@ def _git_revision() -> str | None:
 
 
 def save_checkpoint(run: pathlib.Path, state: TrainState, keep: int) -> pathlib.Path:
-    """`run/checkpoints/step_XXXXXXXX/state.eqx`, atomically, then the `latest` pointer;
+    """`run/checkpoints/step_<step, 8 digits>/state.eqx` (e.g. `step_00000100`), atomically,
+    then the `latest` pointer;
     older checkpoints beyond the last `keep` are removed."""
     root = run / CHECKPOINTS
     root.mkdir(parents=True, exist_ok=True)
@@ -337,4 +342,4 @@ def _truncate_metrics(path: pathlib.Path, step: int) -> None:
         tmp.write_text("".join(line + "\n" for line in kept))
 
 
-__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "decay_mask", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]
+__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "decay_mask", "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]

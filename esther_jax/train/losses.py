@@ -53,6 +53,7 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optax
 from jaxtyping import Array, Bool, Float
 
 from .. import mano
@@ -129,8 +130,8 @@ def _term(values: Array, mask: Array) -> Term:
 
 
 def _bce_with_logits(logits: Array, labels: Array) -> Array:
-    """Binary cross-entropy of `sigmoid(logits)` against boolean labels, stable for any logit."""
-    return jnp.maximum(logits, 0.0) - logits * labels.astype(logits.dtype) + jnp.log1p(jnp.exp(-jnp.abs(logits)))
+    """Binary cross-entropy of `sigmoid(logits)` against boolean labels (optax's stable form)."""
+    return optax.sigmoid_binary_cross_entropy(logits, labels.astype(logits.dtype))
 
 
 def _masked_mean(values: Array, mask: Array) -> Array:

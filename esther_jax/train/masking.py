@@ -85,6 +85,13 @@ def dropped_views(key: PRNGKeyArray, rates: MaskingRates = MaskingRates()) -> Bo
     return jax.random.bernoulli(key, rates.view, (2,))
 
 
+def _augment_keys(key: PRNGKeyArray) -> tuple[PRNGKeyArray, PRNGKeyArray]:
+    """(pixel-level key, blanking key) of one example's augmentation: crops and
+    precomputed features get the same blanking from the same key."""
+    k_pixels, k_blank = jax.random.split(key)
+    return k_pixels, k_blank
+
+
 def kept_views(key: PRNGKeyArray, frames: int, rates: AugmentRates = AugmentRates()) -> Bool[Array, "T 2"]:
     """Which views stay present after whole-view (per frame and view) and whole-frame
     blanking."""
@@ -98,7 +105,8 @@ def augment_images(
     """Noise, random erasing and blanking of one clip's crops (values in [0, 1]).
     Returns the images and which views stay present (False: blanked)."""
     T, _, _, S, _ = images.shape
-    k_sigma, k_noise, k_erase, k_rect, k_fill, k_blank = jax.random.split(key, 6)
+    k_pixels, k_blank = _augment_keys(key)
+    k_sigma, k_noise, k_erase, k_rect, k_fill = jax.random.split(k_pixels, 5)
     dtype = images.dtype
     sigma = jax.random.uniform(k_sigma, (T, 2, 1, 1, 1), dtype, 0.0, rates.noise_sigma_max)
     out = images + sigma * jax.random.normal(k_noise, images.shape, dtype)
@@ -145,7 +153,7 @@ def corrupt(
         if images is not None:
             images, kept = augment_images(k_aug, images, augment)
         else:  # the same blanking draws as with crops
-            kept = kept_views(jax.random.split(k_aug, 6)[5], T, augment)
+            kept = kept_views(_augment_keys(k_aug)[1], T, augment)
         present = present & kept
     if images is not None:
         images = jnp.where(present[..., None, None, None], images, 0.0)
