@@ -63,6 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--frames", type=int, help="window length (the config's num_frames by default: 16)")
     train.add_argument("--targets", default="gt", choices=["gt", "labels"], help="gt.npz of synthetic clips, or the teacher's labels")
     train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
+    train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
+    train.add_argument("--validate-every", type=int, default=500, help="steps between validations (and one at the end)")
+    train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out 16-frame windows per validation")
+    train.add_argument("--ema", type=float, metavar="DECAY", help="keep an EMA of the weights (e.g. 0.999), used for validation and the final model")
     train.add_argument("--checkpoint-every", type=int, default=100)
     train.add_argument("--seed", type=int, default=0)
     predict = commands.add_parser("predict", help="a trained network's hands for clip folders, in the labels format")
@@ -184,14 +188,16 @@ def _train(args) -> int:
     from . import train
 
     data = _clip_folders(args.data, "train")
-    if data is None:
+    val = _clip_folders(args.val, "train") if args.val else None
+    if data is None or (args.val and val is None):
         return 2
     try:
         model_cfg = M.config(args.config, ablation=args.ablation, **({"num_frames": args.frames} if args.frames else {}))
         cfg = train.TrainConfig(stage=args.stage, steps=args.steps, batch=args.batch, learning_rate=args.lr,
-                                warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every)  # fmt: skip
+                                warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every, ema_decay=args.ema,
+                                validate_every=args.validate_every, validation_windows=args.validation_windows)  # fmt: skip
         data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels)
-        summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, init=args.init, resume=args.resume)
+        summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val, init=args.init, resume=args.resume)
     except train.NonFiniteLoss as err:
         print(f"esther train: {err}", file=sys.stderr)
         return 1
@@ -199,6 +205,10 @@ def _train(args) -> int:
         print(f"esther train: {err}", file=sys.stderr)
         return 2
     print(f"trained {summary['steps']} steps (from step {summary['resumed_from']}) in {summary['seconds']:.0f} s -> {summary['model']}")
+    for views, scores in summary.get("validation", {}).items():
+        shown = ", ".join(f"{k} {v:.1f}" if v is not None else f"{k} n/a" for k, v in scores.items() if k.endswith("_mm"))
+        print(f"validation ({views}, {scores['windows']} windows): {shown}, on-screen F1 {scores['onscreen_f1']:.2f}")
+    print(f"learning curves: {summary['curves']}")
     return 0
 
 

@@ -190,7 +190,7 @@ def pck_auc(
     return jnp.sum(0.5 * (curve[1:] + curve[:-1]) * jnp.diff(thresholds)) / max_threshold
 
 
-def jitter(joints: Float[Array, "time joints 3"], onscreen: Bool[Array, "time"], fps: float) -> Score:
+def jitter(joints: Float[Array, "time joints 3"], onscreen: Bool[Array, "time"], fps: float | Float[Array, ""]) -> Score:
     """Appendix L jitter (m/s^2): mean over triplets (t-1, t, t+1) with all three frames
     on-screen of mean_j ||S_{t-1} - 2 S_t + S_{t+1}|| * fps^2. `count` is the number
     of triplets used; a sequence with none is "no data"."""
@@ -230,6 +230,12 @@ def gate_scores(predicted: Bool[Array, "frames"], truth: Bool[Array, "frames"]) 
     tp = jnp.sum((predicted & truth).astype(dtype))
     fp = jnp.sum((predicted & ~truth).astype(dtype))
     fn = jnp.sum((~predicted & truth).astype(dtype))
+    return pooled_gate_scores(tp, fp, fn)
+
+
+def pooled_gate_scores(true_positives: Float[Array, "*n"], false_positives: Float[Array, "*n"], false_negatives: Float[Array, "*n"]) -> GateScores:
+    """Precision, recall and F1 of counts summed over every clip (`GateScores`'s counts)."""
+    tp, fp, fn = (jnp.sum(jnp.asarray(x, jnp.result_type(float))) for x in (true_positives, false_positives, false_negatives))
     precision = jnp.where(tp + fp > 0, tp / jnp.maximum(tp + fp, 1.0), 1.0)
     recall = jnp.where(tp + fn > 0, tp / jnp.maximum(tp + fn, 1.0), 1.0)
     f1 = jnp.where(precision + recall > 0, 2 * precision * recall / jnp.maximum(precision + recall, 1e-12), 0.0)

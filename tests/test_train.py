@@ -5,6 +5,7 @@ the terms on the real `cpu-tiny` network (finite, with gradients; no dead switch
 import dataclasses
 import json
 import math
+import types
 
 import equinox as eqx
 import jax
@@ -152,6 +153,10 @@ def test_masks_decide_which_entries_count(hand):
         root_velocity=perfect.motion.root_velocity.at[2].add(1.0)))  # fmt: skip  (frame 2 is not masked: ignored)
     _, means = _means(moved, clip, targets, hand, mask)
     assert float(means["motion"]) == pytest.approx(0.01, rel=1e-4)
+    # its pose part: per masked frame, the 6D L1 of each rotation averaged over the 16
+    turned = dataclasses.replace(moved, motion=dataclasses.replace(moved.motion, pose_6d=moved.motion.pose_6d.at[1, 5, 2].add(0.32)))
+    _, means = _means(turned, clip, targets, hand, mask)
+    assert float(means["motion"]) == pytest.approx(0.01 + 0.32 / 16, rel=1e-4)
 
 
 def test_terms_are_masked_means_independent_of_the_batch(hand):
@@ -404,9 +409,15 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     run = tmp_path / "run"
     # the settings of the run test above: the compiled step is shared
     args = ["train", "--config", "cpu-tiny", "--frames", str(RUN_FRAMES), "--data", clips_root, "--out", str(run),
-            "--steps", "4", "--batch", "2", "--warmup", "2", "--checkpoint-every", "2"]  # fmt: skip
+            "--steps", "4", "--batch", "2", "--warmup", "2", "--checkpoint-every", "2",
+            "--val", clips_root, "--validate-every", "2", "--validation-windows", "2"]  # fmt: skip
     assert cli.main(args) == 0
-    assert "trained 4 steps" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "trained 4 steps" in out and "validation (right dropped, 2 windows): p_mpjpe_mm" in out
+    rows = [json.loads(line) for line in (run / "validation.jsonl").read_text().splitlines()]
+    assert [(r["step"], r["views"]) for r in rows] == [(2, "both"), (2, "right dropped"), (4, "both"), (4, "right dropped")]
+    assert all(r["windows"] == 2 and r["p_mpjpe_mm"] > 0 and 0 <= r["onscreen_f1"] <= 1 for r in rows)
+    assert (run / "curves.png").stat().st_size > 10_000
     assert cli.main(args) == 2 and "already holds a run" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
     labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
@@ -414,3 +425,29 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     assert cli.main(["evaluate", "--pred", str(tmp_path / "pred"), "--gt", clips_root, "--out", str(tmp_path / "ev")]) == 0
     assert "identity" not in capsys.readouterr().err  # the predictions record their source clip
     assert cli.main(["predict", "--model", str(tmp_path / "nowhere"), clips_root, "--out", str(tmp_path / "p2")]) == 2
+
+
+def test_validation_scores_known_errors(synth_clip, monkeypatch):
+    """evaluate_windows on a stand-in network that returns the targets shifted by 10 mm:
+    P-MPJPE 0, wrist 10 mm, the targets' own jitter, every on-screen frame recalled."""
+    from esther_jax.train import validation
+
+    data_cfg = train.DataConfig(frames=RUN_FRAMES, stride=RUN_FRAMES, crop_size=64)
+    windows = train.build_index([synth_clip], data_cfg)
+    targets = jax.tree.map(lambda *x: jnp.stack(x), *[train.load_example(w, data_cfg)[1] for w in windows])
+    shift = jnp.asarray([0.006, 0.0, -0.008])
+
+    def stand_in(net, clip, hand_model, is_right):
+        assert bool(is_right) and clip.flow.shape[0] == len(windows)
+        return types.SimpleNamespace(joints=targets.joints + shift[None, None, None], emitted=jnp.ones(targets.valid.shape, bool))
+
+    monkeypatch.setattr(validation, "predict", stand_in)
+    net = M.ESTHER(M.config("cpu-tiny", num_frames=RUN_FRAMES), key=jax.random.key(0))  # not run: the stand-in predicts
+    scores = validation.evaluate_windows(net, windows, data_cfg, batch=len(windows))
+    assert scores["windows"] == len(windows)
+    assert scores["p_mpjpe_mm"] == pytest.approx(0.0, abs=1e-3) and scores["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-2)
+    assert scores["wrist_mm"] == pytest.approx(10.0, rel=1e-4)
+    assert scores["jitter"] == pytest.approx(scores["gt_jitter"], rel=1e-5)
+    assert scores["onscreen_recall"] == 1.0 and 0 < scores["onscreen_precision"] <= 1.0
+    dropped = validation.drop_view(train.load_example(windows[0], data_cfg)[0], 1)
+    assert not bool(dropped.view_present[:, 1].any()) and float(jnp.abs(dropped.images[:, 1]).max()) == 0.0

@@ -16,7 +16,8 @@
   pointer), the last `keep_checkpoints` kept, and the final network in `RUN/model`
   (`model.save`, what `model.load` reads). `resume=True` continues from the latest
   checkpoint bit for bit (the batch and the corruption of a step are pure functions of
-  the seed and the step). A non-finite loss stops the run (`NonFiniteLoss`, naming the
+  the seed and the step). With held-out clips, `validation.jsonl` holds the validation
+  metrics every `validate_every` steps and `curves.png` the learning curves. A non-finite loss stops the run (`NonFiniteLoss`, naming the
   step and the terms) and leaves the last good checkpoint as it was.
 """
 
@@ -37,10 +38,12 @@ import optax
 
 from .. import mano
 from .. import model as M
+from ..eval.reports import plot_learning_curves
 from ..files import atomic_output, read_json, write_json
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine
 from .masking import AugmentRates, MaskingRates, corrupt, example_key
+from .validation import evaluate_windows
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,12 +62,16 @@ class TrainConfig:
     """EMA of the trainable weights (e.g. 0.999), saved beside them and used for the final model."""
     checkpoint_every: int = 100
     keep_checkpoints: int = 3
+    validate_every: int = 500
+    """Steps between validations on the held-out clips (and one at the end)."""
+    validation_windows: int = 64
+    """At most this many held-out windows per validation (evenly spread over the clips)."""
 
     def __post_init__(self):
         if self.stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
-        if self.steps < 1 or self.batch < 1 or self.checkpoint_every < 1 or self.keep_checkpoints < 1:
-            raise ValueError("steps, batch, checkpoint_every and keep_checkpoints must be positive")
+        if min(self.steps, self.batch, self.checkpoint_every, self.keep_checkpoints, self.validate_every, self.validation_windows) < 1:
+            raise ValueError("steps, batch, checkpoint_every, keep_checkpoints, validate_every and validation_windows must be positive")
         if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in (0, 1), got {self.ema_decay}")
 
@@ -148,7 +155,7 @@ class Trainer:
 def _step_settings(cfg: TrainConfig) -> TrainConfig:
     """`cfg` with the fields the step does not read reset: runs that differ only in
     checkpointing share one compiled step."""
-    return dataclasses.replace(cfg, checkpoint_every=1, keep_checkpoints=1)
+    return dataclasses.replace(cfg, checkpoint_every=1, keep_checkpoints=1, validate_every=1, validation_windows=1)
 
 
 @eqx.filter_jit
@@ -252,6 +259,7 @@ def train(
     cfg: TrainConfig = TrainConfig(),
     *,
     data_cfg: data_lib.DataConfig | None = None,
+    val_dirs: list[str | pathlib.Path] | None = None,
     init: str | pathlib.Path | None = None,
     resume: bool = False,
     progress: bool = True,
@@ -261,6 +269,9 @@ def train(
 
     Args:
         clip_dirs: training clip folders (with crops and targets; `data.build_index`).
+        val_dirs: held-out clip folders, validated every `cfg.validate_every` steps and at
+            the end (`validation.evaluate_windows`, both views and the right view dropped)
+            into `validation.jsonl`; the learning curves go to `curves.png`.
         init: a previous run (e.g. stage 1's) whose final network starts this one.
         resume: continue `run` from its latest checkpoint (its config must match).
     """
@@ -272,7 +283,7 @@ def train(
         raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
                          f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
     record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
-    config_path, index_path, metrics_path = run / "config.json", run / "index.json", run / "metrics.jsonl"
+    config_path, index_path, metrics_path, val_path = run / "config.json", run / "index.json", run / "metrics.jsonl", run / "validation.jsonl"
     if config_path.exists():
         if not resume:
             raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
@@ -303,10 +314,20 @@ def train(
         state = restored
     start = int(state.step)
     _truncate_metrics(metrics_path, start)
+    _truncate_metrics(val_path, start)
+    val_windows = _validation_windows(val_dirs, data_cfg, cfg.validation_windows) if val_dirs else []
+
+    def validate(step: int, state: TrainState, log) -> None:
+        net = trainer.network(state, ema=cfg.ema_decay is not None)
+        for views, dropped in (("both", None), ("right dropped", 1)):
+            scores = evaluate_windows(net, val_windows, val_cfg, hand_model=hand, batch=cfg.batch, view_dropped=dropped)
+            log.write(json.dumps({"step": step, "views": views, **scores}) + "\n")
+        log.flush()
 
     t0, last = time.perf_counter(), time.perf_counter()
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not progress)
-    with open(metrics_path, "a") as log:
+    val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
+    with open(metrics_path, "a") as log, open(val_path, "a") as val_log:
         for step in range(start, cfg.steps):
             clips_b, targets_b = data_lib.load_batch(windows, data_cfg, cfg.batch, cfg.seed, step)
             new_state, metrics = trainer.step(state, clips_b, targets_b)
@@ -324,20 +345,41 @@ def train(
                 log.write(json.dumps(entry) + "\n")
                 log.flush()
             last = now
+            if val_windows and ((step + 1) % cfg.validate_every == 0 or step + 1 == cfg.steps):
+                validate(step + 1, state, val_log)
             if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps:
                 save_checkpoint(run, state, cfg.keep_checkpoints)
             bar.update(1)
             bar.set_postfix(loss=f"{values['loss']:.4f}")
     bar.close()
     final = M.save(run / "model", trainer.network(state, ema=cfg.ema_decay is not None))
-    return {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0, "model": str(final)}
+    curves = plot_learning_curves(_read_jsonl(metrics_path), _read_jsonl(val_path), run / "curves.png")
+    summary = {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0, "model": str(final), "curves": str(curves)}
+    last = [row for row in _read_jsonl(val_path) if row["step"] == int(state.step)]
+    if last:
+        summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in last}
+    return summary
+
+
+def _validation_windows(val_dirs, data_cfg: data_lib.DataConfig, limit: int) -> list[data_lib.Window]:
+    """Non-overlapping held-out windows, at most `limit`, evenly spread over the clips."""
+    windows = data_lib.build_index(val_dirs, dataclasses.replace(data_cfg, stride=data_cfg.frames))
+    if not windows:
+        raise ValueError(f"no validation window in {len(val_dirs)} held-out clip folders (need crops, targets, {data_cfg.frames} frames)")
+    if len(windows) > limit:
+        windows = [windows[i] for i in np.linspace(0, len(windows) - 1, limit).round().astype(int)]
+    return windows
+
+
+def _read_jsonl(path: pathlib.Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
 
 
 def _truncate_metrics(path: pathlib.Path, step: int) -> None:
     """Drop logged steps after `step` (a resumed run logs them again): no duplicates."""
     if not path.exists():
         return
-    kept = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
+    kept = [json.dumps(row) for row in _read_jsonl(path) if row["step"] <= step]
     with atomic_output(path) as tmp:
         tmp.write_text("".join(line + "\n" for line in kept))
 

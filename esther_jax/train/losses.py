@@ -35,8 +35,10 @@ Stage 2 (joint training) adds `L_FK`, `L_mot` and `L_on`; stage 1's terms stay o
   prior); `limit_prior` (0.05): the mean squared excess (radians) over the anatomical
   joint limits; `shape_prior` (0.02): the mean squared beta.
 - `motion` (0.5): the motion encoder at the masked positions: canonical joints (L1, per
-  masked joint), MANO pose (L1 of the 16 local rotations in 6D, per masked frame, i.e. a
-  frame with a masked joint) and root velocity (L1 on the target's frame differences,
+  masked joint), MANO pose (per masked frame, i.e. a frame with a masked joint: the L1
+  of each of the 16 local rotations in 6D, averaged over the rotations, the same scale
+  as `six_d`; summed over the 96 numbers it was 48 at initialisation, three quarters of
+  the whole loss) and root velocity (L1 on the target's frame differences,
   per masked frame and its successor); the three masked means are summed.
 - `onscreen` (0.5): binary cross-entropy of the on-screen logits against "the hand is
   visible in at least one present view" (a blanked frame is a negative).
@@ -249,7 +251,7 @@ def clip_loss_terms(
     masked_joint = motion_mask & frames
     masked_frame = jnp.any(motion_mask, axis=1) & valid
     canon_mot = jnp.sum(jnp.abs(f32(out.motion.canonical_joints) - canon_gt), axis=-1)
-    pose_mot = jnp.sum(jnp.abs(f32(out.motion.pose_6d) - matrix_to_rotation_6d(target_local)), axis=(-2, -1))
+    pose_mot = jnp.mean(jnp.sum(jnp.abs(f32(out.motion.pose_6d) - matrix_to_rotation_6d(target_local)), axis=-1), axis=-1)
     velocity_gt = f32(targets.transl)[1:] - f32(targets.transl)[:-1]
     velocity_ok = masked_frame[:-1] & valid[1:]
     velocity = jnp.sum(jnp.abs(f32(out.motion.root_velocity)[:-1] - velocity_gt), axis=-1)
