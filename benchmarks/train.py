@@ -2,6 +2,8 @@
 
     python benchmarks/train.py steps   [--configs cpu-tiny cpu-small] [--batch 8]
     python benchmarks/train.py overfit [--config cpu-tiny] [--steps 300] [--batch 2]
+    python benchmarks/train.py learn --train DIR --val DIR --out RUN [--config cpu-small]
+                                     [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
 AdamW update) per config in float32: compile time apart, then the median step time,
@@ -13,6 +15,14 @@ size, both hands), the same for every step.
 window per hand, trained for `--steps` steps (stage 'joint', warm-up 20 steps, peak
 learning rate 1e-3); the loss terms every 10 % of the run and the final P-MPJPE /
 wrist error of the network on its own training windows (no augmentation at test time).
+
+`learn`: the learning curve of the training issue: stage 1 (image encoder) then stage 2
+(joint, initialised from stage 1) on the clips of `--train`, validated on the held-out
+clips of `--val` during training, then scored on every held-out window (both views,
+and the right view dropped) next to the trivial baseline: the training set's mean
+wrist-relative hand placed at the wrist triangulated from the clip's detected 2D
+keypoints (detectors averaged; a frame without a triangulation keeps the last one).
+Writes `RUN/learning.json`; a finished stage is not trained again (rerun to rescore).
 """
 
 import argparse
@@ -93,6 +103,93 @@ def overfit(name: str, steps: int, batch: int) -> None:
         print(f"{side:>5} hand on its training window: P-MPJPE {p:6.1f} mm, wrist {w:6.1f} mm")
 
 
+def _baseline(train_windows, val_windows, data_cfg) -> dict:
+    """The trivial baseline's P-MPJPE / PA-MPJPE / wrist (mm) on the held-out windows."""
+    from esther_jax import clips as clip_format
+    from esther_jax.cameras import StereoRig
+    from esther_jax.triangulation import triangulate_batch
+
+    canonical, wrists_seen = [], []
+    for w in train_windows:
+        _, t = train.load_example(w, data_cfg)
+        ok = np.asarray(t.valid)
+        canonical.append(np.asarray(t.joints - t.joints[:, :1])[ok])
+        wrists_seen.append(np.asarray(t.joints[:, 0])[ok])
+    mean_hand = np.concatenate(canonical).mean(axis=0)  # (21, 3), right-hand frame
+    mean_wrist = np.concatenate(wrists_seen).mean(axis=0)  # for a window without any triangulated wrist
+    p, pa, wrist = [], [], []
+    for w in val_windows:
+        _, t = train.load_example(w, data_cfg)
+        rig = StereoRig.from_json(f"{w.clip}/rig.json")
+        kp = clip_format.load_npz(clip_format.hand_file(w.clip, w.side, "keypoints"), "keypoints")
+        sl = slice(w.start, w.start + data_cfg.frames)
+        uv, conf = jnp.asarray(kp["uv"][:, sl, :, 0], jnp.float32), jnp.asarray(kp["conf"][:, sl, :, 0], jnp.float32)
+        tri = triangulate_batch(rig.cameras, rig.T_rig_cams, uv, conf)  # (D, T): the wrist, per detector
+        ok = np.asarray(tri.valid)
+        pts = np.where(ok[..., None], np.asarray(tri.point), 0.0).sum(0) / np.maximum(ok.sum(0), 1)[:, None]
+        have = ok.any(0)
+        wrists = jnp.asarray(pts, jnp.float32)
+        if w.side == "left":  # into the mirrored frame of the targets (train.mirror_targets)
+            T1_inv = jnp.linalg.inv(jnp.asarray(rig.T_rig_cams[1], jnp.float32))
+            wrists = mano.mirror_points(wrists @ T1_inv[:3, :3].T + T1_inv[:3, 3])
+        held, last = [], (np.asarray(wrists)[np.argmax(have)] if have.any() else mean_wrist)
+        for i in range(len(have)):  # a frame without a triangulation keeps the last one
+            last = np.asarray(wrists[i]) if have[i] else last
+            held.append(last)
+        wrists = jnp.asarray(np.stack(held), jnp.float32)
+        pred = jnp.asarray(mean_hand)[None] + wrists[:, None]
+        valid = np.asarray(t.valid)
+        if not valid.any():
+            continue
+        p.append(np.asarray(jax.vmap(metrics.p_mpjpe)(pred, t.joints))[valid].mean())
+        pa.append(np.asarray(jax.vmap(metrics.pa_mpjpe)(pred, t.joints))[valid].mean())
+        wrist.append(np.asarray(jax.vmap(metrics.wrist_error)(pred, t.joints))[valid].mean())
+    return {"p_mpjpe_mm": 1000 * float(np.mean(p)), "pa_mpjpe_mm": 1000 * float(np.mean(pa)), "wrist_mm": 1000 * float(np.mean(wrist)), "windows": len(p)}
+
+
+def learn(args) -> None:
+    import dataclasses
+    import json
+    import pathlib
+
+    from esther_jax.clips import list_clips
+    from esther_jax.files import write_json
+    from esther_jax.train.validation import evaluate_windows
+
+    cfg = M.config(args.config)
+    train_dirs, val_dirs = list_clips(args.train), list_clips(args.val)
+    data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
+    out = pathlib.Path(args.out)
+    timings = {}
+    for stage, steps, init in (("image", args.stage1_steps, None), ("joint", args.stage2_steps, out / "stage1")):
+        run = out / ("stage1" if stage == "image" else "stage2")
+        if (run / "model").is_dir():
+            print(f"{run} is trained: kept")
+            continue
+        tcfg = train.TrainConfig(stage=stage, steps=steps, batch=args.batch, learning_rate=args.lr, warmup_steps=min(100, steps // 10),
+                                 validate_every=args.validate_every, validation_windows=48, checkpoint_every=100)  # fmt: skip
+        t0 = time.perf_counter()
+        summary = train.train(run, train_dirs, cfg, tcfg, data_cfg=data_cfg, val_dirs=val_dirs, init=init, resume=(run / "config.json").exists())
+        timings[stage] = time.perf_counter() - t0
+        print(f"stage {stage}: {summary['steps']} steps in {timings[stage]:.0f} s; curves {summary['curves']}")
+    net = M.load(out / "stage2" / "model")
+    val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
+    val_windows = train.build_index(val_dirs, val_cfg)
+    result = {"config": cfg.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs), "seconds": timings,
+              "stage1_steps": args.stage1_steps, "stage2_steps": args.stage2_steps, "batch": args.batch, "lr": args.lr}  # fmt: skip
+    for views, dropped in (("both", None), ("right dropped", 1)):
+        result[views] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=dropped)
+    result["baseline"] = _baseline(train.build_index(train_dirs, data_cfg), val_windows, val_cfg)
+    write_json(out / "learning.json", result)
+    print(json.dumps(result, indent=1))
+    print(f"{'':<22} {'P-MPJPE':>8} {'PA-MPJPE':>9} {'wrist':>7} {'jitter':>7} {'gt jitter':>9} {'F1':>5}  (mm, m/s^2)")
+    for views in ("both", "right dropped"):
+        r = result[views]
+        print(f"{'ESTHER ' + views:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}")
+    b = result["baseline"]
+    print(f"{'trivial baseline':<22} {b['p_mpjpe_mm']:8.1f} {b['pa_mpjpe_mm']:9.1f} {b['wrist_mm']:7.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -103,14 +200,26 @@ def main() -> None:
     o.add_argument("--config", default="cpu-tiny")
     o.add_argument("--steps", type=int, default=300)
     o.add_argument("--batch", type=int, default=2)
+    lp = sub.add_parser("learn")
+    lp.add_argument("--train", required=True, help="folder of training clips (esther synth --crops --crop-size 112)")
+    lp.add_argument("--val", required=True, help="folder of held-out clips (another --seed)")
+    lp.add_argument("--out", required=True)
+    lp.add_argument("--config", default="cpu-small")
+    lp.add_argument("--stage1-steps", type=int, default=400)
+    lp.add_argument("--stage2-steps", type=int, default=1200)
+    lp.add_argument("--batch", type=int, default=8)
+    lp.add_argument("--lr", type=float, default=5e-4)
+    lp.add_argument("--validate-every", type=int, default=400)
     args = parser.parse_args()
     from esther_jax import enable_compilation_cache
 
     enable_compilation_cache()
     if args.what == "steps":
         bench_steps(args.configs, args.batch)
-    else:
+    elif args.what == "overfit":
         overfit(args.config, args.steps, args.batch)
+    else:
+        learn(args)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ import dataclasses
 import functools
 import pathlib
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -151,30 +152,41 @@ def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
     sl = slice(window.start, window.start + cfg.frames)
     if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
         raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
-    dtype = jnp.result_type(float)
-    joints = jnp.asarray(target["joints"][sl], dtype)
-    valid = target["onscreen"][sl] if kind == "gt" else target["valid"][sl]
-    seen = np.asarray(jnp.any(rig.is_visible(joints), axis=-1)).T  # (T, 2): some joint in the image, in front
-    present = seen
-    pixels = np.where(present[:, :, None, None, None], images[sl], 0)
+    dtype = np.dtype(jnp.result_type(float))
+    arrays = {
+        "pixels": images[sl],
+        "K": K[sl].astype(dtype),
+        "R_cam_crop": R_cam_crop[sl].astype(dtype),
+        "flow": flow[sl].astype(dtype),
+        "global_orient": target["global_orient"][sl].astype(dtype),
+        "hand_pose": target["hand_pose"][sl].astype(dtype),
+        "betas": target["betas"].astype(dtype),
+        "transl": target["transl"][sl].astype(dtype),
+        "joints": target["joints"][sl].astype(dtype),
+        "valid": np.asarray(target["onscreen"][sl] if kind == "gt" else target["valid"][sl], bool),
+    }
+    return _example(arrays, rig, window.side == "left")
+
+
+@eqx.filter_jit
+def _example(arrays: dict, rig: StereoRig, left: bool) -> tuple[ClipInput, Targets]:
+    """The arrays of a window as (ClipInput, Targets), compiled once per shape and side.
+    A view in which no joint is visible (in the image, in front of the camera) is absent
+    and its pixels are zero."""
+    joints = arrays["joints"]
+    present = jnp.any(rig.is_visible(joints), axis=-1).T  # (T, 2)
+    pixels = jnp.moveaxis(arrays["pixels"], -1, 2).astype(joints.dtype) / 255.0  # (T, 2, 3, S, S)
     example = ClipInput(
-        images=jnp.asarray(np.moveaxis(pixels, -1, 2), dtype) / 255.0,
+        images=jnp.where(present[:, :, None, None, None], pixels, 0.0),
         features=None,
-        K=jnp.asarray(K[sl], dtype),
-        R_cam_crop=jnp.asarray(R_cam_crop[sl], dtype),
-        T_rig_cams=jnp.asarray(rig.T_rig_cams, dtype),
-        flow=jnp.asarray(flow[sl], dtype),
-        view_present=jnp.asarray(present),
+        K=arrays["K"],
+        R_cam_crop=arrays["R_cam_crop"],
+        T_rig_cams=jnp.asarray(rig.T_rig_cams, joints.dtype),
+        flow=arrays["flow"],
+        view_present=present,
     )
-    targets = Targets(
-        global_orient=jnp.asarray(target["global_orient"][sl], dtype),
-        hand_pose=jnp.asarray(target["hand_pose"][sl], dtype),
-        betas=jnp.asarray(target["betas"], dtype),
-        transl=jnp.asarray(target["transl"][sl], dtype),
-        joints=joints,
-        valid=jnp.asarray(valid),
-    )
-    if window.side == "left":
+    targets = Targets(arrays["global_orient"], arrays["hand_pose"], arrays["betas"], arrays["transl"], joints, arrays["valid"])
+    if left:
         return mirror_clip(example), mirror_targets(targets, example.T_rig_cams)
     return example, targets
 

@@ -29,6 +29,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -327,10 +328,15 @@ def train(
     t0, last = time.perf_counter(), time.perf_counter()
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not progress)
     val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
-    with open(metrics_path, "a") as log, open(val_path, "a") as val_log:
+    # The batch of the next step is read on a worker thread while the current step runs.
+    with open(metrics_path, "a") as log, open(val_path, "a") as val_log, ThreadPoolExecutor(1) as loader:
+        fetch = lambda s: loader.submit(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, s)  # noqa: E731
+        pending = fetch(start)
         for step in range(start, cfg.steps):
-            clips_b, targets_b = data_lib.load_batch(windows, data_cfg, cfg.batch, cfg.seed, step)
+            clips_b, targets_b = pending.result()
             new_state, metrics = trainer.step(state, clips_b, targets_b)
+            if step + 1 < cfg.steps:
+                pending = fetch(step + 1)
             values = {k: float(v) for k, v in jax.device_get(metrics).items()}
             if not np.isfinite(values["loss"]):
                 bad = sorted(k.split("/", 1)[1] for k, v in values.items() if k.startswith("loss/") and not np.isfinite(v))
