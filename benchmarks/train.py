@@ -6,7 +6,8 @@
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
-AdamW update) per config in float32: compile time apart, then the median step time,
+AdamW update) per config in float32 (`paper` on precomputed features of its frozen
+backbone): compile time apart, then the median step time,
 clips per second and the process's peak resident set (cumulative over the rows).
 Batches are synthetic windows (a 16-frame synthetic clip with crops at the config's
 size, both hands), the same for every step.
@@ -51,16 +52,36 @@ def _clip_folder(crop_size: int, frames: int = 16) -> str:
     return str(synth.write_clip(synth.make_clip(0, 0, cfg), os.path.join(root, "clip_00000")))
 
 
+def _paper_batch(cfg, batch: int, frames: int):
+    """A batch of the paper config on precomputed features (its backbone is frozen):
+    random patch tokens of the backbone's width, the geometry of a synthetic clip."""
+    folder = _clip_folder(64, frames)
+    data_cfg = train.DataConfig(frames=frames, crop_size=64)
+    clips_b, targets_b = train.load_batch(train.build_index([folder], data_cfg), data_cfg, batch, seed=0, step=0)
+    patches, width = cfg.grid**2, cfg.backbone_spec.width
+    features = jax.random.normal(jax.random.key(0), (batch, frames, 2, patches, width), jnp.float32)
+    scale = cfg.crop_size / 64.0  # the crop intrinsics of a 64 px crop, scaled to the paper's crop size
+    K = clips_b.K * jnp.asarray([scale, scale, 1.0])[:, None]
+    clips_b = M.ClipInput(images=None, features=features, K=K, R_cam_crop=clips_b.R_cam_crop, T_rig_cams=clips_b.T_rig_cams,
+                          flow=clips_b.flow, view_present=clips_b.view_present)  # fmt: skip
+    return clips_b, targets_b
+
+
 def bench_steps(configs: list[str], batch: int) -> None:
     print(f"training step, float32, batch {batch}, 16-frame windows (median of rounds; compile apart)")
+    print("the paper config runs on precomputed backbone features (its DINOv3 backbone is frozen)")
     print(f"{'config':<10} {'compile s':>10} {'step s':>9} {'clips/s':>8} {'peak RSS MiB':>13}")
     hand = mano.load_builtin("right")
     for name in configs:
         cfg = M.config(name)
-        folder = _clip_folder(cfg.crop_size, cfg.num_frames)
-        data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
-        windows = train.build_index([folder], data_cfg)
-        clips_b, targets_b = train.load_batch(windows, data_cfg, batch, seed=0, step=0)
+        if cfg.freeze_backbone:
+            cfg = cfg.replace(precomputed_features=True)
+            clips_b, targets_b = _paper_batch(cfg, batch, cfg.num_frames)
+        else:
+            folder = _clip_folder(cfg.crop_size, cfg.num_frames)
+            data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
+            windows = train.build_index([folder], data_cfg)
+            clips_b, targets_b = train.load_batch(windows, data_cfg, batch, seed=0, step=0)
         trainer = train.Trainer(M.ESTHER(cfg, key=jax.random.key(0)), train.TrainConfig(batch=batch), hand)
         state = trainer.init()
         step = lambda s: trainer.step(s, clips_b, targets_b)  # noqa: E731
@@ -194,7 +215,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
     s = sub.add_parser("steps")
-    s.add_argument("--configs", nargs="+", default=["cpu-tiny", "cpu-small"])
+    s.add_argument("--configs", nargs="+", default=["cpu-tiny", "cpu-small", "paper"])
     s.add_argument("--batch", type=int, default=8)
     o = sub.add_parser("overfit")
     o.add_argument("--config", default="cpu-tiny")

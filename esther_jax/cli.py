@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out 16-frame windows per validation")
     train.add_argument("--ema", type=float, metavar="DECAY", help="keep an EMA of the weights (e.g. 0.999), used for validation and the final model")
     train.add_argument("--checkpoint-every", type=int, default=100)
+    train.add_argument("--distributed", action="store_true",
+                       help="one process of a multi-host run: jax.distributed.initialize() from the environment (JAX_COORDINATOR_ADDRESS, "
+                            "JAX_NUM_PROCESSES, JAX_PROCESS_ID, or SLURM / Open MPI / TPU auto-detection)")  # fmt: skip
     train.add_argument("--seed", type=int, default=0)
     predict = commands.add_parser("predict", help="a trained network's hands for clip folders, in the labels format")
     predict.add_argument("--model", required=True, help="a run folder of esther train (or its model/ folder)")
@@ -183,7 +186,22 @@ def _clip_folders(paths: list[str], command: str) -> list[pathlib.Path] | None:
     return found
 
 
+def _initialize_distributed() -> None:
+    """`jax.distributed.initialize`, its arguments from JAX_COORDINATOR_ADDRESS,
+    JAX_NUM_PROCESSES and JAX_PROCESS_ID where set (else JAX's cluster auto-detection)."""
+    import os
+
+    import jax
+
+    env = {"coordinator_address": os.environ.get("JAX_COORDINATOR_ADDRESS"), "num_processes": os.environ.get("JAX_NUM_PROCESSES"),
+           "process_id": os.environ.get("JAX_PROCESS_ID")}  # fmt: skip
+    kwargs = {k: (int(v) if k != "coordinator_address" else v) for k, v in env.items() if v is not None}
+    jax.distributed.initialize(**kwargs)
+
+
 def _train(args) -> int:
+    if args.distributed:
+        _initialize_distributed()
     from . import model as M
     from . import train
 

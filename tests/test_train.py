@@ -175,6 +175,7 @@ def test_terms_are_masked_means_independent_of_the_batch(hand):
     no_2d, means = train.combine(one, CFG.replace(guidance_2d=False), "image")
     w = train.LossWeights()
     assert float(loss - no_2d) == pytest.approx(float(w.two_d * means["two_d"] + w.heatmap * means["heatmap"]), rel=1e-5)
+    assert set(means) == set(train.STAGE_TERMS["image"])  # stage 1 logs (and computes) its own terms only
     no_tri, _ = train.combine(one, CFG.replace(guidance_triangulation=False), "image")
     assert float(loss - no_tri) == pytest.approx(float(w.triangulation * means["triangulation"]), rel=1e-5)
     with pytest.raises(ValueError, match="stage"):
@@ -451,3 +452,57 @@ def test_validation_scores_known_errors(synth_clip, monkeypatch):
     assert scores["onscreen_recall"] == 1.0 and 0 < scores["onscreen_precision"] <= 1.0
     dropped = validation.drop_view(train.load_example(windows[0], data_cfg)[0], 1)
     assert not bool(dropped.view_present[:, 1].any()) and float(jnp.abs(dropped.images[:, 1]).max()) == 0.0
+
+
+_DATA_PARALLEL = r"""
+import json, os, sys
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+import jax
+import numpy as np
+jax.config.update("jax_compilation_cache_dir", os.environ["ESTHER_JAX_CACHE"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+from esther_jax import mano, model as M, train
+
+clip, frames = sys.argv[1], int(sys.argv[2])
+model_cfg = M.config("cpu-tiny", num_frames=frames)
+cfg = train.TrainConfig(steps=3, batch=4, warmup_steps=1, learning_rate=2e-4)
+data_cfg = train.DataConfig(frames=frames, stride=2, crop_size=model_cfg.crop_size)
+windows = train.build_index([clip], data_cfg)
+net, hand = M.ESTHER(model_cfg, key=jax.random.key(0)), mano.load_builtin("right")
+runs = {}
+for name, mesh in (("one", None), ("four", train.data_mesh())):
+    trainer = train.Trainer(net, cfg, hand, mesh=mesh)
+    state, losses = trainer.init(), []
+    for step in range(cfg.steps):
+        state, metrics = trainer.step(state, *train.load_batch(windows, data_cfg, cfg.batch, cfg.seed, step))
+        losses.append(float(metrics["loss"]))
+    if mesh is not None:
+        sharded = trainer.shard(train.load_batch(windows, data_cfg, cfg.batch, cfg.seed, 0))[0].images
+        split = [s.data.shape[0] for s in sharded.addressable_shards]
+        replicated = all(x.sharding.is_fully_replicated for x in jax.tree.leaves(state.params))
+    runs[name] = (losses, [np.asarray(x) for x in jax.tree.leaves(state.params)])
+(la, pa), (lb, pb) = runs["one"], runs["four"]
+print(json.dumps({"devices": jax.device_count(), "split": split, "replicated": replicated, "losses": [la, lb],
+                  "max_weight_diff": max(float(np.max(np.abs(x - y))) for x, y in zip(pa, pb)),
+                  "max_weight_change": max(float(np.max(np.abs(x - y))) for x, y in zip(pa, jax.tree.leaves(train.Trainer(net, cfg, hand).init().params))),
+                  }))
+"""
+
+
+def test_data_parallel_steps_equal_the_single_device_run(synth_clip):
+    """Four virtual CPU devices (a subprocess: the device count is fixed at start-up):
+    the batch split four ways, the weights replicated, and after three steps the losses
+    and weights equal the one-device run's to 1e-5."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "ESTHER_JAX_CACHE": jax.config.jax_compilation_cache_dir}
+    env.pop("XLA_FLAGS", None)
+    done = subprocess.run([sys.executable, "-c", _DATA_PARALLEL, str(synth_clip), str(RUN_FRAMES)], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["devices"] == 4 and result["split"] == [1, 1, 1, 1] and result["replicated"]
+    np.testing.assert_allclose(result["losses"][1], result["losses"][0], rtol=1e-5)
+    assert result["max_weight_change"] > 1e-4  # the steps moved the weights ...
+    assert result["max_weight_diff"] < 1e-5  # ... identically

@@ -35,6 +35,8 @@ from .loop import NonFiniteLoss as NonFiniteLoss
 from .loop import TrainConfig as TrainConfig
 from .loop import Trainer as Trainer
 from .loop import TrainState as TrainState
+from .loop import data_mesh as data_mesh
+from .loop import process_batch_slice as process_batch_slice
 from .loop import decay_mask as decay_mask
 from .loop import learning_rate_schedule as learning_rate_schedule
 from .loop import load_checkpoint as load_checkpoint
@@ -42,3 +44,5 @@ from .loop import make_optimizer as make_optimizer
 from .loop import save_checkpoint as save_checkpoint
 from .loop import stage_spec as stage_spec
 from .loop import train as train
+from .validation import drop_view as drop_view
+from .validation import evaluate_windows as evaluate_windows

@@ -191,9 +191,10 @@ def _example(arrays: dict, rig: StereoRig, left: bool) -> tuple[ClipInput, Targe
     return example, targets
 
 
-def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int) -> tuple[ClipInput, Targets]:
-    """The stacked examples of `step` (leading batch axis)."""
-    examples = [load_example(windows[i], cfg) for i in batch_indices(len(windows), batch, seed, step)]
+def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int, *, part: slice = slice(None)) -> tuple[ClipInput, Targets]:
+    """The stacked examples of `step` (leading batch axis); `part` of them only (one
+    process's share of a multi-process batch, `loop.process_batch_slice`)."""
+    examples = [load_example(windows[i], cfg) for i in batch_indices(len(windows), batch, seed, step)[part]]
     return jax.tree.map(lambda *x: jnp.stack(x), *examples)
 
 

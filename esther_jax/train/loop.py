@@ -123,16 +123,58 @@ class TrainState(eqx.Module):
     ema: M.ESTHER | None
 
 
+def data_mesh(devices=None) -> jax.sharding.Mesh:
+    """A one-axis mesh named 'batch' over `devices` (default: every device of every
+    process, `jax.devices()`): data parallelism, the batch split over it, the weights
+    replicated."""
+    devices = jax.devices() if devices is None else list(devices)
+    return jax.sharding.Mesh(np.asarray(devices), ("batch",))
+
+
+def _put(tree, sharding):
+    return jax.tree.map(lambda x: jax.device_put(x, sharding) if eqx.is_array(x) else x, tree)
+
+
+def _host(tree):
+    """Replicated arrays as this process's copy (numpy), e.g. to serialise them: a
+    replicated array of a multi-process run is not addressable as a whole."""
+    return jax.tree.map(lambda x: np.asarray(x.addressable_data(0)) if isinstance(x, jax.Array) else x, tree)
+
+
+def process_batch_slice(batch: int) -> slice:
+    """The examples of a global batch that this process loads (all of them in a
+    single-process run): equal consecutive shares in process order."""
+    count, index = jax.process_count(), jax.process_index()
+    if batch % count:
+        raise ValueError(f"a batch of {batch} does not split over {count} processes")
+    share = batch // count
+    return slice(index * share, (index + 1) * share)
+
+
 class Trainer:
-    """The optimiser and the jitted step of one (model, training) configuration."""
+    """The optimiser and the jitted step of one (model, training) configuration.
+
+    With a `mesh` (`data_mesh`), the step runs data-parallel: the weights, optimiser
+    state and hand model are replicated over the mesh's devices, each batch is split
+    along its leading axis (`shard`), and the compiled step's reductions over the batch
+    (the loss terms' sums and counts, hence the gradient) run across devices. The batch
+    must divide evenly over the devices. In a multi-process run every process passes
+    its own share of the global batch to `shard` (`process_batch_slice`).
+    """
 
     def __init__(self, net: M.ESTHER, cfg: TrainConfig, hand_model: mano.ManoModel, weights: LossWeights = LossWeights(),
-                 masking: MaskingRates = MaskingRates(), augment: AugmentRates = AugmentRates()):  # fmt: skip
-        self.cfg, self.model_cfg, self.hand = cfg, net.config, hand_model
+                 masking: MaskingRates = MaskingRates(), augment: AugmentRates = AugmentRates(), *,
+                 mesh: jax.sharding.Mesh | None = None):  # fmt: skip
+        if mesh is not None and cfg.batch % mesh.size:
+            raise ValueError(f"a batch of {cfg.batch} does not split over {mesh.size} devices: choose a multiple of {mesh.size}")
+        self.cfg, self.model_cfg, self.hand, self.mesh = cfg, net.config, hand_model, mesh
         params, self.static = eqx.partition(net, stage_spec(net, cfg.stage))
         with jax.numpy_dtype_promotion("standard"):
             opt_state = make_optimizer(cfg, params).init(params)  # the step rebuilds the same optimiser from cfg
         self._initial = TrainState(jnp.zeros((), jnp.int32), params, opt_state, params if cfg.ema_decay else None)
+        if mesh is not None:
+            replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+            self._initial, self.static, self.hand = _put((self._initial, self.static, self.hand), replicated)
         self._weights, self._masking, self._augment = weights, masking, augment
 
     def init(self) -> TrainState:
@@ -141,8 +183,23 @@ class Trainer:
     def network(self, state: TrainState, *, ema: bool = False) -> M.ESTHER:
         return eqx.combine(state.ema if ema and state.ema is not None else state.params, self.static)
 
+    def shard(self, batch):
+        """This process's share of a batch (leading axis) as global arrays split over
+        the mesh's 'batch' axis; the batch unchanged without a mesh."""
+        if self.mesh is None:
+            return batch
+        sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("batch"))
+        return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch)
+
+    def place(self, state: TrainState) -> TrainState:
+        """A state (e.g. read from a checkpoint) replicated over the mesh; unchanged without one."""
+        if self.mesh is None:
+            return state
+        return _put(state, jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec()))
+
     def step(self, state: TrainState, clips: M.ClipInput, targets) -> tuple[TrainState, dict]:
         """One optimisation step over a batch (leading axis): (new state, metrics)."""
+        clips, targets = self.shard((clips, targets))
         return _train_step(self.static, self.hand, state, clips, targets, self._settings())
 
     def _settings(self):
@@ -265,6 +322,7 @@ def train(
     resume: bool = False,
     progress: bool = True,
     log_every: int = 1,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> dict:
     """Train into the run folder `run` (module docstring); returns a summary.
 
@@ -275,6 +333,11 @@ def train(
             into `validation.jsonl`; the learning curves go to `curves.png`.
         init: a previous run (e.g. stage 1's) whose final network starts this one.
         resume: continue `run` from its latest checkpoint (its config must match).
+        mesh: data parallelism over a device mesh (`data_mesh`); by default every
+            device when there are several (`jax.devices()`, all processes after
+            `jax.distributed.initialize()`), none with one. In a multi-process run every
+            process loads its share of each batch and process 0 alone writes the run
+            folder (a filesystem all processes see).
     """
     from tqdm import tqdm
 
@@ -284,6 +347,8 @@ def train(
         raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
                          f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
     record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
+    main = jax.process_index() == 0
+    mesh = data_mesh() if mesh is None and jax.device_count() > 1 else mesh
     config_path, index_path, metrics_path, val_path = run / "config.json", run / "index.json", run / "metrics.jsonl", run / "validation.jsonl"
     if config_path.exists():
         if not resume:
@@ -298,9 +363,10 @@ def train(
         if not windows:
             raise ValueError(f"no training window in {len(clip_dirs)} clip folders (need crops/<side>.npz and targets, "
                              f"at least {data_cfg.frames} frames)")  # fmt: skip
-        run.mkdir(parents=True, exist_ok=True)
-        data_lib.save_index(index_path, windows, data_cfg)
-        write_json(config_path, record)
+        if main:
+            run.mkdir(parents=True, exist_ok=True)
+            data_lib.save_index(index_path, windows, data_cfg)
+            write_json(config_path, record)
 
     hand = mano.load_builtin("right")
     net = M.ESTHER(model_cfg, key=jax.random.key(cfg.seed))
@@ -308,29 +374,33 @@ def train(
         net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
         if net.config != model_cfg:
             raise ValueError(f"--init {init} is a {net.config.name} network; this run trains {model_cfg.name}")
-    trainer = Trainer(net, cfg, hand)
+    trainer = Trainer(net, cfg, hand, mesh=mesh)
     state = trainer.init()
-    restored = load_checkpoint(run, state) if resume else None
+    restored = load_checkpoint(run, _host(state)) if resume else None
     if restored is not None:
-        state = restored
+        state = trainer.place(restored)
     start = int(state.step)
-    _truncate_metrics(metrics_path, start)
-    _truncate_metrics(val_path, start)
+    if main:
+        _truncate_metrics(metrics_path, start)
+        _truncate_metrics(val_path, start)
+    share = process_batch_slice(cfg.batch)
     val_windows = _validation_windows(val_dirs, data_cfg, cfg.validation_windows) if val_dirs else []
 
     def validate(step: int, state: TrainState, log) -> None:
         net = trainer.network(state, ema=cfg.ema_decay is not None)
         for views, dropped in (("both", None), ("right dropped", 1)):
             scores = evaluate_windows(net, val_windows, val_cfg, hand_model=hand, batch=cfg.batch, view_dropped=dropped)
-            log.write(json.dumps({"step": step, "views": views, **scores}) + "\n")
+            if main:
+                log.write(json.dumps({"step": step, "views": views, **scores}) + "\n")
         log.flush()
 
     t0, last = time.perf_counter(), time.perf_counter()
-    bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not progress)
+    bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not (progress and main))
     val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
     # The batch of the next step is read on a worker thread while the current step runs.
-    with open(metrics_path, "a") as log, open(val_path, "a") as val_log, ThreadPoolExecutor(1) as loader:
-        fetch = lambda s: loader.submit(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, s)  # noqa: E731
+    logs = (open(metrics_path, "a"), open(val_path, "a")) if main else (open(os.devnull, "w"), open(os.devnull, "w"))
+    with logs[0] as log, logs[1] as val_log, ThreadPoolExecutor(1) as loader:
+        fetch = lambda s: loader.submit(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, s, part=share)  # noqa: E731
         pending = fetch(start)
         for step in range(start, cfg.steps):
             clips_b, targets_b = pending.result()
@@ -353,14 +423,17 @@ def train(
             last = now
             if val_windows and ((step + 1) % cfg.validate_every == 0 or step + 1 == cfg.steps):
                 validate(step + 1, state, val_log)
-            if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps:
-                save_checkpoint(run, state, cfg.keep_checkpoints)
+            if main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
+                save_checkpoint(run, _host(state), cfg.keep_checkpoints)
             bar.update(1)
             bar.set_postfix(loss=f"{values['loss']:.4f}")
     bar.close()
-    final = M.save(run / "model", trainer.network(state, ema=cfg.ema_decay is not None))
-    curves = plot_learning_curves(_read_jsonl(metrics_path), _read_jsonl(val_path), run / "curves.png")
-    summary = {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0, "model": str(final), "curves": str(curves)}
+    summary = {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0,
+               "model": str(run / "model"), "curves": str(run / "curves.png")}  # fmt: skip
+    if not main:
+        return summary
+    M.save(run / "model", _host(trainer.network(state, ema=cfg.ema_decay is not None)))
+    plot_learning_curves(_read_jsonl(metrics_path), _read_jsonl(val_path), run / "curves.png")
     last = [row for row in _read_jsonl(val_path) if row["step"] == int(state.step)]
     if last:
         summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in last}
@@ -390,4 +463,4 @@ def _truncate_metrics(path: pathlib.Path, step: int) -> None:
         tmp.write_text("".join(line + "\n" for line in kept))
 
 
-__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "decay_mask", "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]
+__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "data_mesh", "decay_mask", "process_batch_slice", "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]

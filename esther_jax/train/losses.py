@@ -269,7 +269,9 @@ def clip_loss_terms(
 def combine(terms: dict[str, Term], cfg: ModelConfig, stage: str, weights: LossWeights = LossWeights()) -> tuple[Array, dict[str, Array]]:
     """The batch's loss: each term's masked mean (batch sums over batch counts), weighted
     and summed over the terms of `stage` ('image' or 'joint') that the config's switches
-    keep. Returns (loss, {term: masked mean}) with every term's mean, for the logs."""
+    keep. Returns (loss, {term: masked mean}) with the mean of every term of the stage
+    (switched off or not), for the logs; stage 'image' computes nothing of the motion
+    encoder, the decoder or the forward kinematics once compiled."""
     if stage not in STAGES:
         raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
     off = set()
@@ -277,7 +279,7 @@ def combine(terms: dict[str, Term], cfg: ModelConfig, stage: str, weights: LossW
         off |= {"two_d", "heatmap"}
     if not cfg.guidance_triangulation:
         off.add("triangulation")
-    means = {name: jnp.sum(t.total) / jnp.maximum(jnp.sum(t.count), 1.0) for name, t in terms.items()}
+    means = {name: jnp.sum(terms[name].total) / jnp.maximum(jnp.sum(terms[name].count), 1.0) for name in STAGE_TERMS[stage]}
     loss = sum(getattr(weights, name) * means[name] for name in STAGE_TERMS[stage] if name not in off)
     return loss, means
 
