@@ -1,13 +1,13 @@
 """Training cost and a first learning check on this CPU.
 
-    python benchmarks/train.py steps   [--configs cpu-tiny cpu-small] [--batch 8]
+    python benchmarks/train.py steps   [--configs cpu-tiny cpu-small paper] [--batch 8] [--dtypes float32 bfloat16]
     python benchmarks/train.py overfit [--config cpu-tiny] [--steps 300] [--batch 2]
     python benchmarks/train.py learn --train DIR --val DIR --out RUN [--config cpu-small]
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
-AdamW update) per config in float32 (`paper` on precomputed features of its frozen
-backbone): compile time apart, then the median step time,
+AdamW update) per config, float32 and bfloat16 compute (`paper` on precomputed features
+of its frozen backbone): compile time apart, then the median step time,
 clips per second and the process's peak resident set (cumulative over the rows).
 Batches are synthetic windows (a 16-frame synthetic clip with crops at the config's
 size, both hands), the same for every step.
@@ -67,10 +67,10 @@ def _paper_batch(cfg, batch: int, frames: int):
     return clips_b, targets_b
 
 
-def bench_steps(configs: list[str], batch: int) -> None:
-    print(f"training step, float32, batch {batch}, 16-frame windows (median of rounds; compile apart)")
+def bench_steps(configs: list[str], batch: int, dtypes: list[str]) -> None:
+    print(f"training step, batch {batch}, 16-frame windows (median of rounds; compile apart)")
     print("the paper config runs on precomputed backbone features (its DINOv3 backbone is frozen)")
-    print(f"{'config':<10} {'compile s':>10} {'step s':>9} {'clips/s':>8} {'peak RSS MiB':>13}")
+    print(f"{'config':<10} {'compute':>9} {'compile s':>10} {'step s':>9} {'clips/s':>8} {'peak RSS MiB':>13}")
     hand = mano.load_builtin("right")
     for name in configs:
         cfg = M.config(name)
@@ -82,13 +82,14 @@ def bench_steps(configs: list[str], batch: int) -> None:
             data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
             windows = train.build_index([folder], data_cfg)
             clips_b, targets_b = train.load_batch(windows, data_cfg, batch, seed=0, step=0)
-        trainer = train.Trainer(M.ESTHER(cfg, key=jax.random.key(0)), train.TrainConfig(batch=batch), hand)
-        state = trainer.init()
-        step = lambda s: trainer.step(s, clips_b, targets_b)  # noqa: E731
-        compiled = compile_seconds(step, state)
-        seconds = median_seconds(step, state, rounds=3, min_time=0.5)
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        print(f"{name:<10} {compiled:10.1f} {seconds:9.3f} {batch / seconds:8.1f} {rss:13.0f}")
+        for dtype in dtypes:
+            trainer = train.Trainer(M.ESTHER(cfg, key=jax.random.key(0)), train.TrainConfig(batch=batch, compute_dtype=dtype), hand)
+            state = trainer.init()
+            step = lambda s: trainer.step(s, clips_b, targets_b)  # noqa: E731
+            compiled = compile_seconds(step, state)
+            seconds = median_seconds(step, state, rounds=3, min_time=0.5)
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            print(f"{name:<10} {dtype:>9} {compiled:10.1f} {seconds:9.3f} {batch / seconds:8.1f} {rss:13.0f}", flush=True)
 
 
 def overfit(name: str, steps: int, batch: int) -> None:
@@ -217,6 +218,7 @@ def main() -> None:
     s = sub.add_parser("steps")
     s.add_argument("--configs", nargs="+", default=["cpu-tiny", "cpu-small", "paper"])
     s.add_argument("--batch", type=int, default=8)
+    s.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"])
     o = sub.add_parser("overfit")
     o.add_argument("--config", default="cpu-tiny")
     o.add_argument("--steps", type=int, default=300)
@@ -236,7 +238,7 @@ def main() -> None:
 
     enable_compilation_cache()
     if args.what == "steps":
-        bench_steps(args.configs, args.batch)
+        bench_steps(args.configs, args.batch, args.dtypes)
     elif args.what == "overfit":
         overfit(args.config, args.steps, args.batch)
     else:

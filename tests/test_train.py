@@ -367,8 +367,8 @@ def test_a_run_trains_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path,
 
     clean = data_lib.load_batch
 
-    def poisoned(windows, dcfg, batch, seed, step):
-        clips_b, targets_b = clean(windows, dcfg, batch, seed, step)
+    def poisoned(windows, dcfg, batch, seed, step, part=slice(None)):
+        clips_b, targets_b = clean(windows, dcfg, batch, seed, step, part=part)
         if step == 2:
             targets_b = dataclasses.replace(targets_b, joints=targets_b.joints.at[0, 1, 5].set(jnp.nan))
         return clips_b, targets_b
@@ -506,3 +506,21 @@ def test_data_parallel_steps_equal_the_single_device_run(synth_clip):
     np.testing.assert_allclose(result["losses"][1], result["losses"][0], rtol=1e-5)
     assert result["max_weight_change"] > 1e-4  # the steps moved the weights ...
     assert result["max_weight_diff"] < 1e-5  # ... identically
+
+
+def test_mixed_precision_computes_in_bfloat16_and_keeps_geometry_in_float32(synth_clip):
+    """model.cast(net, bfloat16): the transformer's evidence in bfloat16, the keypoints,
+    triangulation, rotations and hands in float32, close to the float32 network's."""
+    model_cfg = M.config("cpu-tiny", num_frames=RUN_FRAMES)
+    data_cfg = train.DataConfig(frames=RUN_FRAMES, crop_size=model_cfg.crop_size)
+    clip, _ = train.load_example(train.build_index([synth_clip], data_cfg)[0], data_cfg)
+    net, hand = M.ESTHER(model_cfg, key=jax.random.key(1)), mano.load_builtin("right")
+    forward = eqx.filter_jit(lambda n, c: n(c, hand))
+    full, half = forward(net, clip), forward(M.cast(net, jnp.bfloat16), clip)
+    assert half.image.features.dtype == jnp.bfloat16 and half.image.heatmap_logits.dtype == jnp.bfloat16
+    for x in (half.image.keypoints_2d, half.image.triangulated, half.decoded.rotations, half.params.transl, half.joints, half.vertices):
+        assert x.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(half.image.keypoints_2d), np.asarray(full.image.keypoints_2d), atol=0.5)  # px of 64
+    np.testing.assert_allclose(np.asarray(half.joints), np.asarray(full.joints), atol=2e-3)  # m
+    with pytest.raises(ValueError, match="compute_dtype"):
+        train.TrainConfig(compute_dtype="float16")

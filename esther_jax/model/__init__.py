@@ -22,6 +22,7 @@ from .config import ModelConfig as ModelConfig
 from .config import config as config
 from .esther import ESTHER as ESTHER
 from .esther import ClipInput as ClipInput
+from .esther import cast as cast
 from .esther import ESTHEROutput as ESTHEROutput
 from .esther import HandPrediction as HandPrediction
 from .esther import clip_input_from_crops as clip_input_from_crops

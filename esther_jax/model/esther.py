@@ -91,8 +91,9 @@ class ESTHER(eqx.Module):
     def patch_features(self, clip: ClipInput) -> Float[Array, "T 2 P C"]:
         """The backbone's patch tokens of the clip's crops (or its precomputed features)."""
         cfg = self.config
+        compute = self.image_encoder.feature_proj.weight.dtype  # the weights' dtype (`cast`)
         if clip.features is not None:
-            return clip.features
+            return clip.features.astype(compute)
         if clip.images is None:
             raise ValueError("ClipInput has neither images nor features")
         if self.backbone is None:
@@ -100,7 +101,7 @@ class ESTHER(eqx.Module):
         S = cfg.crop_size
         if clip.images.shape[-3:] != (3, S, S) or clip.images.shape[-4] != 2:
             raise ValueError(f"images must be (T, 2, 3, {S}, {S}) for config {cfg.name!r}; got {clip.images.shape}")
-        features = self.backbone(clip.images)
+        features = self.backbone(clip.images.astype(compute))
         return jax.lax.stop_gradient(features) if cfg.freeze_backbone else features
 
     @broadcasting
@@ -154,6 +155,15 @@ def trainable(model: ESTHER):
     if model.backbone is not None and model.config.freeze_backbone:
         spec = eqx.tree_at(lambda m: m.backbone, spec, jax.tree.map(lambda _: False, model.backbone))
     return spec
+
+
+def cast(model: ESTHER, dtype) -> ESTHER:
+    """The network with its floating-point weights in `dtype` (e.g. `jnp.bfloat16` for
+    mixed-precision training: the step casts float32 master weights with this, and the
+    gradients flow back to them). The network computes in its weights' dtype and keeps
+    the geometry (Plucker rays, triangulation, 6D -> rotation, forward kinematics) in
+    its inputs' (the clip's calibration) dtype."""
+    return jax.tree.map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
 
 
 def extract_features(backbone: ViT | ConvStem, images: Float[Array, "*batch 2 3 S S"]) -> Float[Array, "*batch 2 P C"]:

@@ -53,7 +53,7 @@ def evidence_statistics(
     """
     image = jax.lax.stop_gradient(image)
     keep = view_present[:, :, None] & ~motion_mask[:, None, :]
-    vis = jnp.where(keep, jax.nn.sigmoid(image.visibility_logits), 0.0)
+    vis = jnp.where(keep, jax.nn.sigmoid(image.visibility_logits.astype(image.triangulated.dtype)), 0.0)
     usable = image.triangulation_valid & ~motion_mask
     wrist = jnp.where(usable[:, 0], jnp.linalg.norm(image.triangulated[:, 0], axis=-1), 0.0)
     count = jnp.sum(usable.astype(vis.dtype), axis=1)
@@ -126,20 +126,21 @@ class Decoded(eqx.Module):
 
 
 @broadcasting
-def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"]) -> tuple[Float[Array, "16 6"], Float[Array, "16 3 3"]]:
+def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"], dtype=None) -> tuple[Float[Array, "16 6"], Float[Array, "16 3 3"]]:
     """Local 6D rotation of each MANO joint from its token and its parent's world rotation.
 
     Joints are decoded level by level down the tree (root; the fingers' first, second,
     third joints), each conditioned on its parent's world rotation (6D), so a joint's
-    output depends only on its own and its ancestors' tokens.
+    output depends only on its own and its ancestors' tokens. The rotations are in
+    `dtype` (default: the tokens'; float32 geometry under mixed precision).
     """
-    dtype = tokens.dtype
+    dtype = tokens.dtype if dtype is None else dtype
     local6 = [None] * NUM_POSE_TOKENS
     world = [None] * NUM_POSE_TOKENS
     identity6 = jnp.asarray(_IDENTITY_6D, dtype)
     for joints in _levels(MANO_PARENTS):
         parent6 = jnp.stack([identity6 if MANO_PARENTS[j] < 0 else matrix_to_rotation_6d(world[MANO_PARENTS[j]]) for j in joints])
-        out = head(jnp.concatenate([tokens[jnp.asarray(joints)], parent6], axis=-1)) + identity6
+        out = head(jnp.concatenate([tokens[jnp.asarray(joints)], parent6.astype(tokens.dtype)], axis=-1)).astype(dtype) + identity6
         R = rotation_6d_to_matrix(out)
         for k, j in enumerate(joints):
             parent = MANO_PARENTS[j]
@@ -182,16 +183,18 @@ class FusionDecoder(eqx.Module):
         wrist_valid: Bool[Array, "T"],
     ) -> Decoded:
         T = image_features.shape[0]
+        geometry = triangulated_wrist.dtype  # the outputs' dtype (float32 under mixed precision)
         q = jnp.broadcast_to(self.queries, (T,) + self.queries.shape) + self.time_embed[:T, None, :]
+        evidence = evidence.astype(q.dtype)
         gates = []
         for layer in self.layers:
             q, gate = layer(q, image_features, motion.features, motion.root, evidence)
             gates.append(gate)
         q = self.norm_out(q)
-        pose_6d, rotations = jax.vmap(decode_kinematic_tree, in_axes=(None, 0))(self.pose_head, q[:, :NUM_POSE_TOKENS])
-        betas = self.shape_head(jnp.mean(q[:, SHAPE_TOKEN], axis=0))
-        base = jnp.broadcast_to(jnp.asarray(WRIST_PRIOR_M, q.dtype), (T, 3))
+        pose_6d, rotations = jax.vmap(decode_kinematic_tree, in_axes=(None, 0, None))(self.pose_head, q[:, :NUM_POSE_TOKENS], geometry)
+        betas = self.shape_head(jnp.mean(q[:, SHAPE_TOKEN], axis=0)).astype(geometry)
+        base = jnp.broadcast_to(jnp.asarray(WRIST_PRIOR_M, geometry), (T, 3))
         if self.anchored_wrist:
             base = jnp.where(wrist_valid[:, None], triangulated_wrist, base)
-        transl = base + self.wrist_head(q[:, WRIST_TOKEN])
+        transl = base + self.wrist_head(q[:, WRIST_TOKEN]).astype(geometry)
         return Decoded(pose_6d=pose_6d, rotations=rotations, betas=betas, transl=transl, gates=jnp.stack(gates))

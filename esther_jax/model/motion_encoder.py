@@ -85,7 +85,7 @@ class MotionEncoder(eqx.Module):
         root = jnp.broadcast_to(self.root_token, (T, 1, self.root_token.shape[0])) + time
         parts = [joints, root]
         if self.flow_embed is not None:
-            parts.append(self.flow_embed(flow)[:, None, :] + time)
+            parts.append(self.flow_embed(flow.astype(joints.dtype))[:, None, :] + time)
         width = sum(p.shape[1] for p in parts)
         x = jnp.concatenate(parts, axis=1).reshape(T * width, -1)  # one sequence over the clip
         for block in self.blocks:

@@ -144,7 +144,7 @@ class StereoImageEncoder(eqx.Module):
 
             ray = jax.vmap(jax.vmap(rays, in_axes=(0, 0, 0)), in_axes=(0, 0, None))(cameras, R_cam_crop, T_rig_cams)
             ray = ray * jnp.asarray([1.0, 1.0, 1.0] + [PLUCKER_MOMENT_SCALE] * 3, ray.dtype)
-            tokens = tokens + self.ray_embed(ray)
+            tokens = tokens + self.ray_embed(ray.astype(tokens.dtype))
         tokens = jnp.where(view_present[..., None, None], tokens, self.view_mask_token)
         tokens = tokens + self.view_embed[:, None, :]
         for block in self.blocks:
@@ -155,12 +155,15 @@ class StereoImageEncoder(eqx.Module):
             queries = block(queries, tokens)
         normed = self.norm_tokens(tokens)
         heat = jnp.einsum("tvjd,tvpd->tvjp", self.heatmap_proj(queries), normed) / math.sqrt(normed.shape[-1])
-        centres = patch_centres(self.crop_size, self.grid).reshape(P, 2).astype(heat.dtype)
-        keypoints = jax.nn.softmax(heat, axis=-1) @ centres
+        # the 2D keypoints and their triangulation in the calibration's dtype (float32
+        # under mixed precision), whatever the network computes in
+        geometry = K.dtype
+        centres = patch_centres(self.crop_size, self.grid).reshape(P, 2).astype(geometry)
+        keypoints = jax.nn.softmax(heat.astype(geometry), axis=-1) @ centres
         visibility = self.visibility_head(queries)[..., 0]
         features_out = self.merge(jnp.concatenate([queries[:, 0], queries[:, 1]], axis=-1))
 
-        weights = jax.nn.sigmoid(visibility) * view_present[..., None].astype(visibility.dtype)
+        weights = jax.nn.sigmoid(visibility.astype(geometry)) * view_present[..., None].astype(geometry)
         T_rig_crops = crop_poses(R_cam_crop, T_rig_cams)
         per_joint = jax.vmap(triangulate, in_axes=(None, None, 1, 1))  # over joints
         tri = jax.vmap(per_joint)(cameras, T_rig_crops, keypoints, weights)  # over frames

@@ -63,6 +63,10 @@ class TrainConfig:
     """EMA of the trainable weights (e.g. 0.999), saved beside them and used for the final model."""
     checkpoint_every: int = 100
     keep_checkpoints: int = 3
+    compute_dtype: str = "float32"
+    """'float32', or 'bfloat16': mixed precision, the network computed in bfloat16 from
+    float32 master weights (`model.cast`), geometry, forward kinematics and losses in
+    float32."""
     validate_every: int = 500
     """Steps between validations on the held-out clips (and one at the end)."""
     validation_windows: int = 64
@@ -73,6 +77,8 @@ class TrainConfig:
             raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
         if min(self.steps, self.batch, self.checkpoint_every, self.keep_checkpoints, self.validate_every, self.validation_windows) < 1:
             raise ValueError("steps, batch, checkpoint_every, keep_checkpoints, validate_every and validation_windows must be positive")
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
         if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in (0, 1), got {self.ema_decay}")
 
@@ -228,6 +234,8 @@ def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips
 
     def loss_fn(params):
         net = eqx.combine(params, static)
+        if cfg.compute_dtype != "float32":
+            net = M.cast(net, jnp.dtype(cfg.compute_dtype))
 
         def one(clip, target, mask):
             out = net(clip, hand, motion_mask=mask)
