@@ -66,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
     train.add_argument("--validate-every", type=int, default=500, help="steps between validations (and one at the end)")
     train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out 16-frame windows per validation")
+    train.add_argument("--features", metavar="DIR", help="a feature cache for a frozen backbone: filled once (resumable), then read instead of the crops")
+    train.add_argument("--backbone-weights", metavar="FILE", help="DINOv3 weights (.pth, .npz, .safetensors) for the ViT backbone of a fresh network")
     train.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                        help="mixed precision: bfloat16 compute, float32 weights, geometry and losses (default: on for the paper config)")
     train.add_argument("--ema", type=float, metavar="DECAY", help="keep an EMA of the weights (e.g. 0.999), used for validation and the final model")
@@ -217,8 +219,10 @@ def _train(args) -> int:
                                 warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every, ema_decay=args.ema,
                                 compute_dtype="bfloat16" if (args.bf16 if args.bf16 is not None else args.config == "paper") else "float32",
                                 validate_every=args.validate_every, validation_windows=args.validation_windows)  # fmt: skip
-        data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels)
-        summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val, init=args.init, resume=args.resume)
+        data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels,
+                                    features=args.features)  # fmt: skip
+        summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val, init=args.init, resume=args.resume,
+                              backbone_weights=args.backbone_weights)  # fmt: skip
     except train.NonFiniteLoss as err:
         print(f"esther train: {err}", file=sys.stderr)
         return 1

@@ -4,6 +4,7 @@ messages, their atomic writes and their output-folder checks)."""
 import contextlib
 import fcntl
 import glob
+import hashlib
 import json
 import math
 import os
@@ -111,3 +112,12 @@ def check_out_dir(path: str | pathlib.Path, what: str = "--out") -> pathlib.Path
     except OSError as err:
         raise ValueError(f"{what} {path} cannot be written: {err.strerror or err}") from err
     return path
+
+
+def file_sha256(path: str | pathlib.Path) -> str:
+    """The sha256 (hex) of a file's bytes, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -524,3 +524,33 @@ def test_mixed_precision_computes_in_bfloat16_and_keeps_geometry_in_float32(synt
     np.testing.assert_allclose(np.asarray(half.joints), np.asarray(full.joints), atol=2e-3)  # m
     with pytest.raises(ValueError, match="compute_dtype"):
         train.TrainConfig(compute_dtype="float16")
+
+
+def test_feature_cache_holds_what_the_frozen_backbone_sees(synth_clip, tmp_path):
+    """precompute_features once; windows then carry the cached tokens, equal (float16) to
+    the backbone's tokens of the crops the network would see, mirrored ones for the left
+    hand; another backbone is refused, a second fill does nothing."""
+    from esther_jax.train import features as F
+
+    model_cfg = M.config("cpu-tiny", num_frames=RUN_FRAMES, freeze_backbone=True)
+    backbone = M.ESTHER(model_cfg, key=jax.random.key(0)).backbone
+    cache = F.precompute_features(backbone, [synth_clip], model_cfg.crop_size, tmp_path / "features", progress=False)
+    files = sorted(cache.glob("*/*.npy"))
+    assert [f.name for f in files] == ["left.npy", "right.npy"] and files[0].parent.name.startswith(synth_clip.name + "-")
+    stamp = [f.stat().st_mtime_ns for f in files]
+    F.precompute_features(backbone, [synth_clip], model_cfg.crop_size, cache, progress=False)
+    assert [f.stat().st_mtime_ns for f in files] == stamp  # resumable: nothing redone
+    crops_cfg = train.DataConfig(frames=RUN_FRAMES, crop_size=model_cfg.crop_size)
+    cached_cfg = dataclasses.replace(crops_cfg, features=str(cache))
+    extract = jax.jit(M.extract_features)
+    for window in train.build_index([synth_clip], crops_cfg):
+        seen, targets = train.load_example(window, crops_cfg)
+        cached, cached_targets = train.load_example(window, cached_cfg)
+        assert cached.images is None and cached.features.shape == seen.view_present.shape + (model_cfg.grid**2, model_cfg.backbone_spec.width)
+        expected = np.where(np.asarray(seen.view_present)[..., None, None], np.asarray(extract(backbone, seen.images)), 0.0)
+        np.testing.assert_allclose(np.asarray(cached.features), expected, atol=2e-2, rtol=1e-2)
+        np.testing.assert_array_equal(np.asarray(cached.K), np.asarray(seen.K))
+        np.testing.assert_array_equal(np.asarray(cached_targets.joints), np.asarray(targets.joints))
+    other = M.ESTHER(model_cfg, key=jax.random.key(1)).backbone
+    with pytest.raises(ValueError, match="another backbone"):
+        F.precompute_features(other, [synth_clip], model_cfg.crop_size, cache, progress=False)

@@ -8,7 +8,6 @@ the serialised leaves.
 """
 
 import dataclasses
-import hashlib
 import json
 import os
 import pathlib
@@ -22,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ..files import read_json
+from ..files import file_sha256, read_json
 from ..crops import resize_crops
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
@@ -210,7 +209,7 @@ def _mirror_conjugate(A: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n
 
 
 @broadcasting
-def mirror_clip(clip: ClipInput) -> ClipInput:
+def mirror_clip(clip: ClipInput, *, mirrored_features: Array | None = None, crop_size: int | None = None) -> ClipInput:
     """The mirror image of a clip (x -> -x in the rig frame), views swapped.
 
     A left hand becomes a right hand seen by a rig whose left camera is the mirrored
@@ -219,10 +218,15 @@ def mirror_clip(clip: ClipInput) -> ClipInput:
     camera. The flow token is mirrored (the left view's flow stands in for the new left
     view's). Mirroring twice gives the input back when its rig frame is its left camera.
     Leading batch axes are kept.
+
+    Features cannot be mirrored: a clip without crops needs `mirrored_features`, the
+    backbone's features of its mirrored crops (`extract_features` of this function's
+    `images`, as a feature cache stores them), and the crops' side `crop_size`.
     """
-    if clip.images is None:
-        raise ValueError("cannot mirror precomputed features: mirror the crops (mirror_clip), then extract_features")
-    size = clip.images.shape[-1]
+    if clip.images is None and (mirrored_features is None or crop_size is None):
+        raise ValueError("cannot mirror precomputed features: mirror the crops (mirror_clip), extract their features and pass "
+                         "them as mirrored_features with the crop_size")  # fmt: skip
+    size = clip.images.shape[-1] if clip.images is not None else crop_size
     K = clip.K[..., ::-1, :, :]
     K = K.at[..., 0, 2].set(size - 1.0 - K[..., 0, 2])
     T_mirror = _mirror_conjugate(clip.T_rig_cams)[..., ::-1, :, :]
@@ -230,8 +234,8 @@ def mirror_clip(clip: ClipInput) -> ClipInput:
     flow_grid = clip.flow[..., :128].reshape(lead + (8, 8, 2))[..., ::-1, :] * jnp.asarray([-1.0, 1.0], clip.flow.dtype)
     flow_flags = clip.flow[..., 128:].reshape(lead + (8, 8))[..., ::-1]
     return ClipInput(
-        images=clip.images[..., ::-1, :, :, :][..., ::-1],
-        features=None,
+        images=None if clip.images is None else clip.images[..., ::-1, :, :, :][..., ::-1],
+        features=None if clip.images is not None else mirrored_features,
         K=K,
         R_cam_crop=_mirror_conjugate(clip.R_cam_crop[..., ::-1, :, :]),
         T_rig_cams=jnp.linalg.inv(T_mirror[..., :1, :, :]) @ T_mirror,
@@ -361,7 +365,7 @@ def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         eqx.tree_serialise_leaves(tmp / WEIGHTS_FILE, model)
-        record = {**json.loads(model.config.to_json()), DIGEST_KEY: _sha256(tmp / WEIGHTS_FILE)}
+        record = {**json.loads(model.config.to_json()), DIGEST_KEY: file_sha256(tmp / WEIGHTS_FILE)}
         (tmp / CONFIG_FILE).write_text(json.dumps(record, indent=2, sort_keys=True))
         if folder.exists():
             shutil.rmtree(folder)
@@ -383,7 +387,7 @@ def load(folder: str | pathlib.Path) -> ESTHER:
     if DIGEST_KEY not in record:
         raise ValueError(f"{folder / CONFIG_FILE} records no {DIGEST_KEY}: the weights cannot be verified (save the model again)")
     expected = record.pop(DIGEST_KEY)
-    actual = _sha256(folder / WEIGHTS_FILE)
+    actual = file_sha256(folder / WEIGHTS_FILE)
     if actual != expected:
         raise ValueError(
             f"{folder / WEIGHTS_FILE} is damaged or was replaced: its sha256 {actual[:16]}... differs from "
@@ -396,10 +400,3 @@ def load(folder: str | pathlib.Path) -> ESTHER:
     except Exception as err:
         raise ValueError(f"{folder / WEIGHTS_FILE} does not match its config.json ({cfg.name}): {err}") from err
 
-
-def _sha256(path: pathlib.Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

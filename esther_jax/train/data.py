@@ -33,6 +33,7 @@ from ..cameras import StereoRig
 from ..crops import resize_crops
 from ..files import read_json, write_json
 from ..model.esther import ClipInput, mirror_clip
+from .features import feature_file
 from .losses import Targets
 
 TARGET_KINDS = ("gt", "labels")
@@ -49,6 +50,9 @@ class DataConfig:
     """'gt' (synthetic ground truth) or 'labels' (the teacher's labels under `labels`)."""
     labels: str | None = None
     """Root of the teacher's label folders (targets = 'labels')."""
+    features: str | None = None
+    """A feature cache (`features.precompute_features`): read the frozen backbone's
+    cached tokens instead of the crops."""
 
     def __post_init__(self):
         if self.targets not in TARGET_KINDS:
@@ -153,8 +157,16 @@ def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
     if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
         raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
     dtype = np.dtype(jnp.result_type(float))
+    if cfg.features:
+        cached = np.load(feature_file(cfg.features, clip, window.side), mmap_mode="r")
+        if cached.shape[0] < sl.stop:
+            raise clips.ClipFormatError(f"{feature_file(cfg.features, clip, window.side)} has {cached.shape[0]} frames; "
+                                        f"the crops have {images.shape[0]}: rebuild the feature cache")  # fmt: skip
+        visual = {"features": np.asarray(cached[sl])}
+    else:
+        visual = {"pixels": images[sl]}
     arrays = {
-        "pixels": images[sl],
+        **visual,
         "K": K[sl].astype(dtype),
         "R_cam_crop": R_cam_crop[sl].astype(dtype),
         "flow": flow[sl].astype(dtype),
@@ -165,20 +177,26 @@ def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
         "joints": target["joints"][sl].astype(dtype),
         "valid": np.asarray(target["onscreen"][sl] if kind == "gt" else target["valid"][sl], bool),
     }
-    return _example(arrays, rig, window.side == "left")
+    return _example(arrays, rig, window.side == "left", cfg.crop_size)
 
 
 @eqx.filter_jit
-def _example(arrays: dict, rig: StereoRig, left: bool) -> tuple[ClipInput, Targets]:
+def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[ClipInput, Targets]:
     """The arrays of a window as (ClipInput, Targets), compiled once per shape and side.
     A view in which no joint is visible (in the image, in front of the camera) is absent
-    and its pixels are zero."""
+    and its pixels (or cached tokens) are zero."""
     joints = arrays["joints"]
     present = jnp.any(rig.is_visible(joints), axis=-1).T  # (T, 2)
-    pixels = jnp.moveaxis(arrays["pixels"], -1, 2).astype(joints.dtype) / 255.0  # (T, 2, 3, S, S)
+    images = features = None
+    if "pixels" in arrays:
+        pixels = jnp.moveaxis(arrays["pixels"], -1, 2).astype(joints.dtype) / 255.0  # (T, 2, 3, S, S)
+        images = jnp.where(present[:, :, None, None, None], pixels, 0.0)
+    else:  # cached tokens, of the mirrored crops (views swapped) for a left hand
+        seen = present[:, ::-1] if left else present
+        features = jnp.where(seen[:, :, None, None], arrays["features"].astype(joints.dtype), 0.0)
     example = ClipInput(
-        images=jnp.where(present[:, :, None, None, None], pixels, 0.0),
-        features=None,
+        images=images,
+        features=None if left else features,
         K=arrays["K"],
         R_cam_crop=arrays["R_cam_crop"],
         T_rig_cams=jnp.asarray(rig.T_rig_cams, joints.dtype),
@@ -187,7 +205,8 @@ def _example(arrays: dict, rig: StereoRig, left: bool) -> tuple[ClipInput, Targe
     )
     targets = Targets(arrays["global_orient"], arrays["hand_pose"], arrays["betas"], arrays["transl"], joints, arrays["valid"])
     if left:
-        return mirror_clip(example), mirror_targets(targets, example.T_rig_cams)
+        mirrored = mirror_clip(example) if images is not None else mirror_clip(example, mirrored_features=features, crop_size=crop_size)
+        return mirrored, mirror_targets(targets, example.T_rig_cams)
     return example, targets
 
 

@@ -40,10 +40,12 @@ import optax
 from .. import mano
 from .. import model as M
 from ..eval.reports import plot_learning_curves
-from ..files import atomic_output, read_json, write_json
+from ..files import atomic_output, file_sha256, read_json, write_json
+from ..model.backbones import ViT
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine
 from .masking import AugmentRates, MaskingRates, corrupt, example_key
+from .features import precompute_features
 from .validation import evaluate_windows
 
 
@@ -331,6 +333,7 @@ def train(
     progress: bool = True,
     log_every: int = 1,
     mesh: jax.sharding.Mesh | None = None,
+    backbone_weights: str | pathlib.Path | None = None,
 ) -> dict:
     """Train into the run folder `run` (module docstring); returns a summary.
 
@@ -340,6 +343,8 @@ def train(
             the end (`validation.evaluate_windows`, both views and the right view dropped)
             into `validation.jsonl`; the learning curves go to `curves.png`.
         init: a previous run (e.g. stage 1's) whose final network starts this one.
+        backbone_weights: a DINOv3 checkpoint for the (ViT) backbone of a fresh network
+            (`model.load_dinov3_weights`), recorded with its sha256 in `config.json`.
         resume: continue `run` from its latest checkpoint (its config must match).
         mesh: data parallelism over a device mesh (`data_mesh`); by default every
             device when there are several (`jax.devices()`, all processes after
@@ -355,6 +360,10 @@ def train(
         raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
                          f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
     record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
+    if backbone_weights is not None:
+        if init is not None:
+            raise ValueError("--backbone-weights starts a fresh network; --init brings its own backbone")
+        record["backbone_weights"] = {"path": str(backbone_weights), "sha256": file_sha256(backbone_weights)}
     main = jax.process_index() == 0
     mesh = data_mesh() if mesh is None and jax.device_count() > 1 else mesh
     config_path, index_path, metrics_path, val_path = run / "config.json", run / "index.json", run / "metrics.jsonl", run / "validation.jsonl"
@@ -382,6 +391,14 @@ def train(
         net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
         if net.config != model_cfg:
             raise ValueError(f"--init {init} is a {net.config.name} network; this run trains {model_cfg.name}")
+    if backbone_weights is not None:
+        if not isinstance(net.backbone, ViT):
+            raise ValueError(f"--backbone-weights loads DINOv3 weights into a ViT backbone; {model_cfg.name} has {model_cfg.backbone}")
+        net = eqx.tree_at(lambda m: m.backbone, net, M.load_dinov3_weights(net.backbone, backbone_weights))
+    if data_cfg.features:
+        if net.backbone is None or not model_cfg.freeze_backbone:
+            raise ValueError(f"cached features need a frozen backbone (the paper config); {model_cfg.name}'s is trained")
+        precompute_features(net.backbone, list(clip_dirs) + list(val_dirs or []), model_cfg.crop_size, data_cfg.features, progress=progress and main)
     trainer = Trainer(net, cfg, hand, mesh=mesh)
     state = trainer.init()
     restored = load_checkpoint(run, _host(state)) if resume else None
