@@ -399,4 +399,3 @@ def load(folder: str | pathlib.Path) -> ESTHER:
         return eqx.tree_deserialise_leaves(folder / WEIGHTS_FILE, skeleton)
     except Exception as err:
         raise ValueError(f"{folder / WEIGHTS_FILE} does not match its config.json ({cfg.name}): {err}") from err
-

@@ -17,8 +17,11 @@
   (`model.save`, what `model.load` reads). `resume=True` continues from the latest
   checkpoint bit for bit (the batch and the corruption of a step are pure functions of
   the seed and the step). With held-out clips, `validation.jsonl` holds the validation
-  metrics every `validate_every` steps and `curves.png` the learning curves. A non-finite loss stops the run (`NonFiniteLoss`, naming the
-  step and the terms) and leaves the last good checkpoint as it was.
+  metrics every `validate_every` steps and `curves.png` the learning curves. A
+  non-finite loss stops the run (`NonFiniteLoss`, naming the step and the terms) and
+  leaves the last good checkpoint as it was.
+- Several devices: `data_mesh` and `Trainer(mesh=)` (data parallelism); several
+  processes: `jax.distributed.initialize()` first, then the same code.
 """
 
 import dataclasses
@@ -41,7 +44,6 @@ from .. import mano
 from .. import model as M
 from ..eval.reports import plot_learning_curves
 from ..files import atomic_output, file_sha256, read_json, write_json
-from ..model.backbones import ViT
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine
 from .masking import AugmentRates, MaskingRates, corrupt, example_key
@@ -392,7 +394,7 @@ def train(
         if net.config != model_cfg:
             raise ValueError(f"--init {init} is a {net.config.name} network; this run trains {model_cfg.name}")
     if backbone_weights is not None:
-        if not isinstance(net.backbone, ViT):
+        if not isinstance(net.backbone, M.ViT):
             raise ValueError(f"--backbone-weights loads DINOv3 weights into a ViT backbone; {model_cfg.name} has {model_cfg.backbone}")
         net = eqx.tree_at(lambda m: m.backbone, net, M.load_dinov3_weights(net.backbone, backbone_weights))
     if data_cfg.features:
