@@ -231,7 +231,7 @@ def _train(args) -> int:
         return 2
     print(f"trained {summary['steps']} steps (from step {summary['resumed_from']}) in {summary['seconds']:.0f} s -> {summary['model']}")
     for views, scores in summary.get("validation", {}).items():
-        shown = ", ".join(f"{k} {v:.1f}" if v is not None else f"{k} n/a" for k, v in scores.items() if k.endswith("_mm"))
+        shown = ", ".join(f"{k} {v:.1f}" if v is not None else f"{k} n/a" for k, v in scores.items() if k.endswith(("_mm", "_px")))
         print(f"validation ({views}, {scores['windows']} windows): {shown}, on-screen F1 {scores['onscreen_f1']:.2f}")
     print(f"learning curves: {summary['curves']}")
     return 0

@@ -5,7 +5,6 @@ the terms on the real `cpu-tiny` network (finite, with gradients; no dead switch
 import dataclasses
 import json
 import math
-import types
 
 import equinox as eqx
 import jax
@@ -13,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import mano
+from esther_jax import mano, metrics
 from esther_jax import model as M
 from esther_jax import train
 from esther_jax.cameras import rig_preset
@@ -399,6 +398,8 @@ def test_a_run_trains_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path,
     assert set(la[0]) >= {"loss", "grad_norm", "learning_rate", "clips_per_s", "loss/joints", "loss/two_d"}
     assert {f"loss/{t}" for t in train.STAGE_TERMS["joint"]} <= set(la[0])
     assert all(np.isfinite(v) for e in la for v in e.values()) and all(e["grad_norm"] > 0 for e in la)
+    parts = ("backbone", "image_encoder", "motion_encoder", "fusion_decoder")
+    assert all(e[f"grad_norm/{part}"] > 0 for e in la for part in parts)  # the gradient reaches every module
     assert any(e["loss/motion"] > 0 for e in la)
 
 
@@ -414,10 +415,11 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
             "--val", clips_root, "--validate-every", "2", "--validation-windows", "2"]  # fmt: skip
     assert cli.main(args) == 0
     out = capsys.readouterr().out
-    assert "trained 4 steps" in out and "validation (right dropped, 2 windows): p_mpjpe_mm" in out
+    assert "trained 4 steps" in out and "validation (right dropped, 2 windows): " in out
+    assert "p_mpjpe_mm" in out and "keypoints_2d_px" in out
     rows = [json.loads(line) for line in (run / "validation.jsonl").read_text().splitlines()]
     assert [(r["step"], r["views"]) for r in rows] == [(2, "both"), (2, "right dropped"), (4, "both"), (4, "right dropped")]
-    assert all(r["windows"] == 2 and r["p_mpjpe_mm"] > 0 and 0 <= r["onscreen_f1"] <= 1 for r in rows)
+    assert all(r["windows"] == 2 and r["p_mpjpe_mm"] > 0 and r["keypoints_2d_px"] > 0 and 0 <= r["onscreen_f1"] <= 1 for r in rows)
     assert (run / "curves.png").stat().st_size > 10_000
     assert cli.main(args) == 2 and "already holds a run" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
@@ -428,28 +430,26 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     assert cli.main(["predict", "--model", str(tmp_path / "nowhere"), clips_root, "--out", str(tmp_path / "p2")]) == 2
 
 
-def test_validation_scores_known_errors(synth_clip, monkeypatch):
-    """evaluate_windows on a stand-in network that returns the targets shifted by 10 mm:
-    P-MPJPE 0, wrist 10 mm, the targets' own jitter, every on-screen frame recalled."""
+def test_validation_scores_known_errors(synth_clip):
+    """score_windows on predictions equal to the targets shifted by 10 mm and 2D keypoints
+    off by (3, 4) px: P-MPJPE 0, wrist 10 mm, 2D 5 px, the targets' own jitter, every
+    on-screen frame recalled; drop_view blanks a view."""
     from esther_jax.train import validation
 
     data_cfg = train.DataConfig(frames=RUN_FRAMES, stride=RUN_FRAMES, crop_size=64)
     windows = train.build_index([synth_clip], data_cfg)
-    targets = jax.tree.map(lambda *x: jnp.stack(x), *[train.load_example(w, data_cfg)[1] for w in windows])
+    clip, targets = jax.tree.map(lambda *x: jnp.stack(x), *[train.load_example(w, data_cfg) for w in windows])
     shift = jnp.asarray([0.006, 0.0, -0.008])
-
-    def stand_in(net, clip, hand_model, is_right):
-        assert bool(is_right) and clip.flow.shape[0] == len(windows)
-        return types.SimpleNamespace(joints=targets.joints + shift[None, None, None], emitted=jnp.ones(targets.valid.shape, bool))
-
-    monkeypatch.setattr(validation, "predict", stand_in)
-    net = M.ESTHER(M.config("cpu-tiny", num_frames=RUN_FRAMES), key=jax.random.key(0))  # not run: the stand-in predicts
-    scores = validation.evaluate_windows(net, windows, data_cfg, batch=len(windows))
-    assert scores["windows"] == len(windows)
-    assert scores["p_mpjpe_mm"] == pytest.approx(0.0, abs=1e-3) and scores["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-2)
-    assert scores["wrist_mm"] == pytest.approx(10.0, rel=1e-4)
-    assert scores["jitter"] == pytest.approx(scores["gt_jitter"], rel=1e-5)
-    assert scores["onscreen_recall"] == 1.0 and 0 < scores["onscreen_precision"] <= 1.0
+    uv = jax.vmap(lambda c, j: train.crop_projections(c, j, 64)[0])(clip, targets.joints)
+    fps = jnp.full((len(windows),), 30.0)
+    per_window, gate = validation.score_windows(targets.joints + shift[None, None, None], jnp.ones(targets.valid.shape, bool),
+                                                uv + jnp.asarray([3.0, 4.0])[None, None, None, None], clip, targets, fps, 64)  # fmt: skip
+    mean = lambda name: float(metrics.dataset_mean(per_window[name]).value)  # noqa: E731
+    assert mean("p_mpjpe_mm") == pytest.approx(0.0, abs=1e-6) and mean("pa_mpjpe_mm") == pytest.approx(0.0, abs=1e-5)
+    assert mean("wrist_mm") == pytest.approx(0.010, rel=1e-4) and mean("keypoints_2d_px") == pytest.approx(5.0, rel=1e-4)
+    assert mean("jitter") == pytest.approx(mean("gt_jitter"), rel=1e-5)
+    pooled = metrics.pooled_gate_scores(gate.true_positives, gate.false_positives, gate.false_negatives)
+    assert float(pooled.recall) == 1.0 and 0 < float(pooled.precision) <= 1.0
     dropped = validation.drop_view(train.load_example(windows[0], data_cfg)[0], 1)
     assert not bool(dropped.view_present[:, 1].any()) and float(jnp.abs(dropped.images[:, 1]).max()) == 0.0
 

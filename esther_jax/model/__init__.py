@@ -1,8 +1,8 @@
 """The ESTHER network in Equinox (paper 3.4-3.7, appendices B-E).
 
 Public names: `ESTHER`, `ModelConfig`, `config`, `CONFIGS`, `ABLATIONS`, `BACKBONES`,
-`parameter_counts`, `ClipInput`, `ESTHEROutput`, `HandPrediction`, `predict`,
-`mirror_clip`, `unmirror`, `trainable`, `extract_features`, `clip_input_from_crops`,
+`parameter_counts`, `ClipInput`, `ESTHEROutput`, `HandPrediction`, `predict`, `gated`,
+`cast` (mixed precision), `mirror_clip`, `unmirror`, `trainable`, `extract_features`, `clip_input_from_crops`,
 `save`, `load`, the backbones (`ViT`, `ConvStem`, `make_backbone`,
 `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
 `MotionEncoder`, `FusionDecoder`) and their outputs (`ImageEvidence`,
@@ -23,6 +23,7 @@ from .config import config as config
 from .esther import ESTHER as ESTHER
 from .esther import ClipInput as ClipInput
 from .esther import cast as cast
+from .esther import gated as gated
 from .esther import ESTHEROutput as ESTHEROutput
 from .esther import HandPrediction as HandPrediction
 from .esther import clip_input_from_crops as clip_input_from_crops

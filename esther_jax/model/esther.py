@@ -268,13 +268,18 @@ def unmirror(out: HandPrediction, T_rig_cams: Float[Array, "2 4 4"]) -> HandPred
     return dataclasses.replace(out, params=params, joints=points(out.joints), vertices=points(out.vertices))
 
 
+def gated(out: ESTHEROutput, threshold: float | Float[Array, ""] = 0.5) -> HandPrediction:
+    """A network output as the hand `predict` emits (its frame, right hand): frames whose
+    on-screen probability is above `threshold` are emitted."""
+    prob = jax.nn.sigmoid(out.motion.onscreen_logits.astype(out.joints.dtype))
+    return HandPrediction(params=out.params, joints=out.joints, vertices=out.vertices, onscreen_prob=prob, emitted=prob > threshold)
+
+
 @eqx.filter_jit
 def _predict(model: ESTHER, clips: ClipInput, hand_model: ManoModel, is_right: Bool[Array, "batch"], threshold: Float[Array, ""]):
     def one(clip, right):
         seen = jax.tree.map(lambda a, b: jnp.where(right, a, b), clip, mirror_clip(clip)) if clip.images is not None else clip
-        out = model(seen, hand_model)
-        prob = jax.nn.sigmoid(out.motion.onscreen_logits)
-        pred = HandPrediction(params=out.params, joints=out.joints, vertices=out.vertices, onscreen_prob=prob, emitted=prob > threshold)
+        pred = gated(model(seen, hand_model), threshold)
         if clip.images is None:
             return pred
         return jax.tree.map(lambda a, b: jnp.where(right, a, b), pred, unmirror(pred, clip.T_rig_cams))

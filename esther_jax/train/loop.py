@@ -257,7 +257,9 @@ def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips
     if ema is not None:
         d = cfg.ema_decay
         ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
-    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads)}
+    parts = {f"grad_norm/{part}": optax.tree.norm(getattr(grads, part)) for part in ("backbone", "image_encoder", "motion_encoder", "fusion_decoder")
+             if jax.tree.leaves(getattr(grads, part))}  # fmt: skip  (the parts the stage trains)
+    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads), **parts}
     return TrainState(state.step + 1, params, opt_state, ema), metrics
 
 

@@ -1,20 +1,23 @@
 """Scoring a network on held-out windows: the periodic validation of a training run and
 the learning-curve benchmark.
 
-`evaluate_windows` predicts every window (`model.predict`, on-screen gate applied, no
-augmentation, no masking), optionally with one view dropped through the view-mask token,
-and scores it with `esther_jax.metrics` against the window's targets:
+`evaluate_windows` predicts every window (what `model.predict` emits, `model.gated`: the
+on-screen gate applied; no augmentation, no masking), optionally with one view dropped
+through the view-mask token, and scores it with `esther_jax.metrics` against the
+window's targets:
 
 - accuracy per frame with a target (`Targets.valid`): P-MPJPE (wrist-relative), PA-MPJPE
   (similarity Procrustes), wrist error, averaged per window then over windows (the
   paper's clip-weighted mean; a window is the clip unit here);
+- the image encoder's 2D keypoint error (crop pixels) per joint projecting into the crop
+  of a present view, in frames with a target: what stage 1's guidance trains;
 - jitter (appendix L, m/s^2) of the predicted joints and of the targets' own, on the
   frames with a target, ungated;
 - the on-screen gate's precision / recall / F1 pooled over every frame, the truth being
   the training label (`losses.onscreen_label`: a target and a joint projecting into the
   crop of a present view).
 
-Errors are reported in millimetres (`*_mm`). Windows are taken as they are: build them
+3D errors are reported in millimetres (`*_mm`). Windows are taken as they are: build them
 with `DataConfig.stride == frames` for non-overlapping held-out windows.
 """
 
@@ -22,14 +25,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float
 
 from .. import clips as clip_format
 from .. import mano, metrics
-from ..model.esther import ESTHER, ClipInput, predict
+from ..model.esther import ESTHER, ClipInput, gated
 from .data import DataConfig, Window, load_example
 from .losses import Targets, crop_projections, onscreen_label
 
-VALIDATION_METRICS = ("p_mpjpe_mm", "pa_mpjpe_mm", "wrist_mm", "jitter", "gt_jitter", "onscreen_precision", "onscreen_recall", "onscreen_f1")
+VALIDATION_METRICS = ("p_mpjpe_mm", "pa_mpjpe_mm", "wrist_mm", "keypoints_2d_px", "jitter", "gt_jitter", "onscreen_precision", "onscreen_recall", "onscreen_f1")
 
 
 def drop_view(clip: ClipInput, view: int) -> ClipInput:
@@ -43,25 +47,45 @@ def drop_view(clip: ClipInput, view: int) -> ClipInput:
 
 
 @eqx.filter_jit
-def _window_scores(clip: ClipInput, targets: Targets, joints: jax.Array, emitted: jax.Array, fps: jax.Array, crop_size: int):
-    """Per window: accuracy Scores, jitter Scores and gate counts (vmapped over windows)."""
+def _predict_windows(net: ESTHER, hand_model: mano.ManoModel, clip: ClipInput):
+    """What `predict` emits for a batch of right-hand windows, and the 2D keypoints."""
+    out = jax.vmap(lambda c: net(c, hand_model))(clip)
+    pred = gated(out)
+    return pred.joints, pred.emitted, out.image.keypoints_2d
 
-    def one(clip, targets, joints, emitted, fps):
-        gt = targets.joints
-        valid = targets.valid
+
+@eqx.filter_jit
+def score_windows(
+    joints: Float[Array, "B T 21 3"],
+    emitted: Bool[Array, "B T"],
+    keypoints_2d: Float[Array, "B T 2 21 2"],
+    clip: ClipInput,
+    targets: Targets,
+    fps: Float[Array, "B"],
+    crop_size: int,
+):
+    """Per window of a batch: ({metric: Score}, GateScores) of predicted rig-frame joints,
+    the emitted frames and the 2D keypoints (crop pixels) against the targets (module
+    docstring); 3D Scores in metres."""
+
+    def one(joints, emitted, keypoints_2d, clip, targets, fps):
+        gt, valid = targets.joints, targets.valid
         frame = lambda f: jax.vmap(f)(joints, gt)  # noqa: E731
+        uv, _, inside = crop_projections(clip, gt, crop_size)
+        visible = inside & clip.view_present[..., None] & valid[:, None, None]
+        error_2d = jnp.linalg.norm(keypoints_2d.astype(uv.dtype) - uv, axis=-1)
         scores = {
             "p_mpjpe_mm": metrics.clip_mean(frame(metrics.p_mpjpe), valid),
             "pa_mpjpe_mm": metrics.clip_mean(frame(metrics.pa_mpjpe), valid),
             "wrist_mm": metrics.clip_mean(frame(metrics.wrist_error), valid),
+            "keypoints_2d_px": metrics.clip_mean(error_2d.reshape(-1), visible.reshape(-1)),
             "jitter": metrics.jitter(joints, valid, fps),
             "gt_jitter": metrics.jitter(gt, valid, fps),
         }
-        _, _, inside = crop_projections(clip, gt, crop_size)
         truth = onscreen_label(targets, inside & clip.view_present[..., None])
         return scores, metrics.gate_scores(emitted, truth)
 
-    return jax.vmap(one)(clip, targets, joints, emitted, fps)
+    return jax.vmap(one)(joints, emitted, keypoints_2d, clip, targets, fps)
 
 
 def evaluate_windows(
@@ -89,9 +113,9 @@ def evaluate_windows(
         clip, targets = jax.tree.map(lambda *x: jnp.stack(x), *examples)
         if view_dropped is not None:
             clip = drop_view(clip, view_dropped)
-        out = predict(net, clip, hand_model, is_right=True)  # left hands arrive mirrored, as right hands
         fps = jnp.asarray([fps_of[w.clip] for w in padded], clip.flow.dtype)
-        scores, gate = jax.device_get(_window_scores(clip, targets, out.joints, out.emitted, fps, data_cfg.crop_size))
+        joints, emitted, keypoints_2d = _predict_windows(net, hand_model, clip)
+        scores, gate = jax.device_get(score_windows(joints, emitted, keypoints_2d, clip, targets, fps, data_cfg.crop_size))
         per_window.append(jax.tree.map(lambda x: np.asarray(x)[: len(chunk)], scores))
         gates.append(jax.tree.map(lambda x: np.asarray(x)[: len(chunk)], gate))
     scores = jax.tree.map(lambda *x: np.concatenate(x), *per_window)
@@ -107,4 +131,4 @@ def evaluate_windows(
     return result
 
 
-__all__ = ["VALIDATION_METRICS", "drop_view", "evaluate_windows"]
+__all__ = ["VALIDATION_METRICS", "drop_view", "evaluate_windows", "score_windows"]
