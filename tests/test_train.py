@@ -452,6 +452,26 @@ def test_validation_scores_known_errors(synth_clip):
     assert float(pooled.recall) == 1.0 and 0 < float(pooled.precision) <= 1.0
     dropped = validation.drop_view(train.load_example(windows[0], data_cfg)[0], 1)
     assert not bool(dropped.view_present[:, 1].any()) and float(jnp.abs(dropped.images[:, 1]).max()) == 0.0
+    kept = jnp.arange(RUN_FRAMES) % 3 != 1
+    blanked, mask = validation.drop_frames(train.load_example(windows[0], data_cfg)[0], kept)
+    assert np.array_equal(np.asarray(blanked.view_present.any(axis=1)), np.asarray(kept) & np.asarray(clip.view_present[0].any(axis=1)))
+    assert float(jnp.abs(blanked.images[~kept]).max()) == 0.0 and np.array_equal(np.asarray(mask[:, 0]), ~np.asarray(kept))
+
+
+def test_robustness_conditions_run_through_the_network(synth_clip):
+    """evaluate_windows under dropped frames plus a corruption, with bootstrap intervals
+    (the conditions of the paper's tables 4 and 6)."""
+    net = M.ESTHER(M.config("cpu-tiny", num_frames=RUN_FRAMES), key=jax.random.key(0))
+    data_cfg = train.DataConfig(frames=RUN_FRAMES, stride=RUN_FRAMES, crop_size=64)
+    windows = train.build_index([synth_clip], data_cfg)
+    clean = train.evaluate_windows(net, windows, data_cfg, batch=2)
+    harsh = train.evaluate_windows(net, windows, data_cfg, batch=2, frames_dropped=4, corruption="low_light", intervals=True)
+    assert list(harsh)[:-2] == list(train.validation.VALIDATION_METRICS) and harsh["windows"] == 2
+    assert harsh["p_mpjpe_mm"] != clean["p_mpjpe_mm"]  # the condition reached the network
+    low, high = harsh["intervals"]["p_mpjpe_mm"]
+    assert low <= harsh["p_mpjpe_mm"] <= high
+    with pytest.raises(ValueError, match="frames_dropped"):
+        train.evaluate_windows(net, windows, data_cfg, frames_dropped=RUN_FRAMES + 1)
 
 
 _DATA_PARALLEL = r"""

@@ -44,5 +44,6 @@ from .loop import make_optimizer as make_optimizer
 from .loop import save_checkpoint as save_checkpoint
 from .loop import stage_spec as stage_spec
 from .loop import train as train
+from .validation import drop_frames as drop_frames
 from .validation import drop_view as drop_view
 from .validation import evaluate_windows as evaluate_windows
