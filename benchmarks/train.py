@@ -4,6 +4,7 @@
     python benchmarks/train.py overfit [--config cpu-tiny] [--steps 300] [--batch 2]
     python benchmarks/train.py learn --train DIR --val DIR --out RUN [--config cpu-small]
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
+                                     [--set backbone=conv-small ...]
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
 AdamW update) per config, float32 and bfloat16 compute (`paper` on precomputed features
@@ -23,7 +24,9 @@ clips of `--val` during training, then scored on every held-out window (both vie
 and the right view dropped) next to the trivial baseline: the training set's mean
 wrist-relative hand placed at the wrist triangulated from the clip's detected 2D
 keypoints (detectors averaged; a frame without a triangulation keeps the last one).
-Writes `RUN/learning.json`; a finished stage is not trained again (rerun to rescore).
+Writes `RUN/learning.json`; a finished stage is not trained again (rerun to rescore);
+`--stage2-steps 0` scores stage 1 alone (its 2D error is the number to watch), `--set`
+changes model config fields (the levers: backbone, dim, crop_size, ...).
 """
 
 import argparse
@@ -178,12 +181,18 @@ def learn(args) -> None:
     from esther_jax.files import write_json
     from esther_jax.train.validation import evaluate_windows
 
-    cfg = M.config(args.config)
+    def parse(field: str, text: str):
+        kind = type(getattr(M.config(args.config), field))
+        return text.lower() in ("1", "true", "yes") if kind is bool else kind(text)
+
+    overrides = {k: parse(k, v) for k, v in (item.split("=", 1) for item in args.set)}
+    cfg = M.config(args.config, **overrides)
     train_dirs, val_dirs = list_clips(args.train), list_clips(args.val)
     data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
     out = pathlib.Path(args.out)
     timings = {}
-    for stage, steps, init in (("image", args.stage1_steps, None), ("joint", args.stage2_steps, out / "stage1")):
+    stages = [("image", args.stage1_steps, None), ("joint", args.stage2_steps, out / "stage1" if args.stage1_steps else None)]
+    for stage, steps, init in [s for s in stages if s[1] > 0]:
         run = out / ("stage1" if stage == "image" else "stage2")
         if (run / "model").is_dir():
             print(f"{run} is trained: kept")
@@ -194,20 +203,22 @@ def learn(args) -> None:
         summary = train.train(run, train_dirs, cfg, tcfg, data_cfg=data_cfg, val_dirs=val_dirs, init=init, resume=(run / "config.json").exists())
         timings[stage] = time.perf_counter() - t0
         print(f"stage {stage}: {summary['steps']} steps in {timings[stage]:.0f} s; curves {summary['curves']}")
-    net = M.load(out / "stage2" / "model")
+    last = out / ("stage2" if args.stage2_steps else "stage1")
+    net = M.load(last / "model")
     val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
     val_windows = train.build_index(val_dirs, val_cfg)
-    result = {"config": cfg.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs), "seconds": timings,
+    result = {"config": cfg.name, "overrides": overrides, "evaluated": last.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs), "seconds": timings,
               "stage1_steps": args.stage1_steps, "stage2_steps": args.stage2_steps, "batch": args.batch, "lr": args.lr}  # fmt: skip
     for views, dropped in (("both", None), ("right dropped", 1)):
         result[views] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=dropped)
     result["baseline"] = _baseline(train.build_index(train_dirs, data_cfg), val_windows, val_cfg)
     write_json(out / "learning.json", result)
     print(json.dumps(result, indent=1))
-    print(f"{'':<22} {'P-MPJPE':>8} {'PA-MPJPE':>9} {'wrist':>7} {'jitter':>7} {'gt jitter':>9} {'F1':>5}  (mm, m/s^2)")
+    print(f"{'':<22} {'P-MPJPE':>8} {'PA-MPJPE':>9} {'wrist':>7} {'2D px':>6} {'jitter':>7} {'gt jitter':>9} {'F1':>5}  (mm, m/s^2)")
     for views in ("both", "right dropped"):
         r = result[views]
-        print(f"{'ESTHER ' + views:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}")
+        print(f"{'ESTHER ' + views:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
+              f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}")  # fmt: skip
     b = result["baseline"]
     print(f"{'trivial baseline':<22} {b['p_mpjpe_mm']:8.1f} {b['pa_mpjpe_mm']:9.1f} {b['wrist_mm']:7.1f}")
 
@@ -233,6 +244,7 @@ def main() -> None:
     lp.add_argument("--batch", type=int, default=8)
     lp.add_argument("--lr", type=float, default=5e-4)
     lp.add_argument("--validate-every", type=int, default=400)
+    lp.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="model config overrides, e.g. backbone=conv-small")
     args = parser.parse_args()
     from esther_jax import enable_compilation_cache
 
