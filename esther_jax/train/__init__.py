@@ -1,7 +1,8 @@
 """Training the ESTHER network (appendices B, C, E): the losses term by term
 (`losses`), token masking and image augmentation (`masking`), windows of clip folders
-and reproducible batches (`data`), the optimiser, the jitted step and run folders that
-resume bit for bit (`loop`)."""
+and reproducible batches (`data`), cached features of a frozen backbone (`features`),
+the optimiser, the jitted step, data parallelism and run folders that resume bit for bit
+(`loop`), and scoring on held-out windows (`validation`)."""
 
 from .data import DataConfig as DataConfig
 from .data import Window as Window
@@ -44,6 +45,7 @@ from .loop import make_optimizer as make_optimizer
 from .loop import save_checkpoint as save_checkpoint
 from .loop import stage_spec as stage_spec
 from .loop import train as train
+from .features import precompute_features as precompute_features
 from .validation import drop_frames as drop_frames
 from .validation import drop_view as drop_view
 from .validation import evaluate_windows as evaluate_windows

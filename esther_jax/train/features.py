@@ -2,9 +2,10 @@
 tokens of every training crop are computed once and read instead of the crops.
 
 `precompute_features(backbone, clip_dirs, crop_size, out)` writes, per clip and hand
-with crops, `out/<clip name>-<clip digest>/<side>.npy` (`feature_file`): float16 (T, 2, P, C), the backbone's tokens of
-the crops resized to `crop_size` *as the network sees them*: a left hand's of its
-mirrored crops (`model.mirror_clip`), since features cannot be mirrored afterwards.
+with crops, `out/<clip name>-<clip digest>/<side>.npy` (`feature_file`): float16
+(T, 2, P, C), the backbone's tokens of the crops resized to `crop_size` *as the network
+sees them*: a left hand's of its mirrored crops (`model.mirror_clip`), since features
+cannot be mirrored afterwards.
 `out/features.json` records the backbone (name, sha256 of its weights) and the crop
 size; a cache made by another backbone is refused. The job resumes (finished files are
 kept), writes each file atomically, and holds a lock per clip, so two processes can
@@ -93,14 +94,4 @@ def precompute_features(
     return out
 
 
-def check_cache(root: str | pathlib.Path, backbone: ViT | ConvStem, crop_size: int) -> None:
-    """Raise unless `root` is a feature cache of this backbone at this crop size."""
-    path = pathlib.Path(root) / RECORD
-    if not path.is_file():
-        raise FileNotFoundError(f"{root} is not a feature cache ({RECORD} missing): precompute_features first")
-    record = read_json(path)
-    if record.get("backbone_sha256") != backbone_digest(backbone) or record.get("crop_size") != crop_size:
-        raise ValueError(f"{root} holds the features of another backbone or crop size than this network's")
-
-
-__all__ = ["backbone_digest", "check_cache", "feature_file", "precompute_features"]
+__all__ = ["backbone_digest", "feature_file", "precompute_features"]
