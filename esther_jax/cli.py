@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
     train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
     train.add_argument("--validate-every", type=int, default=500, help="steps between validations (and one at the end)")
-    train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out 16-frame windows per validation")
+    train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out windows (of the network's num_frames) per validation")
     train.add_argument("--features", metavar="DIR", help="a feature cache for a frozen backbone: filled once (resumable), then read instead of the crops")
     train.add_argument("--backbone-weights", metavar="FILE", help="DINOv3 weights (.pth, .npz, .safetensors) for the ViT backbone of a fresh network")
     train.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
