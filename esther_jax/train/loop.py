@@ -215,10 +215,6 @@ class Trainer:
     def _settings(self):
         return (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
 
-    def learning_rate(self, step: int) -> float:
-        with jax.numpy_dtype_promotion("standard"):
-            return float(learning_rate_schedule(self.cfg)(step))
-
 
 def _step_settings(cfg: TrainConfig) -> TrainConfig:
     """`cfg` with the fields the step does not read reset: runs that differ only in
@@ -252,6 +248,7 @@ def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips
     optimizer = make_optimizer(cfg, state.params)
     with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with Python floats
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        learning_rate = learning_rate_schedule(cfg)(state.step)  # the rate this update used
     params = eqx.apply_updates(state.params, updates)
     ema = state.ema
     if ema is not None:
@@ -259,7 +256,8 @@ def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips
         ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
     parts = {f"grad_norm/{part}": optax.tree.norm(getattr(grads, part)) for part in ("backbone", "image_encoder", "motion_encoder", "fusion_decoder")
              if jax.tree.leaves(getattr(grads, part))}  # fmt: skip  (the parts the stage trains)
-    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads), **parts}
+    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads), **parts,
+               "learning_rate": learning_rate}  # fmt: skip
     return TrainState(state.step + 1, params, opt_state, ema), metrics
 
 
@@ -413,7 +411,8 @@ def train(
         _truncate_metrics(metrics_path, start)
         _truncate_metrics(val_path, start)
     share = process_batch_slice(cfg.batch)
-    val_windows = _validation_windows(val_dirs, data_cfg, cfg.validation_windows) if val_dirs else []
+    val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)  # non-overlapping held-out windows
+    val_windows = _validation_windows(val_dirs, val_cfg, cfg.validation_windows) if val_dirs else []
 
     def validate(step: int, state: TrainState, log) -> None:
         net = trainer.network(state, ema=cfg.ema_decay is not None)
@@ -425,7 +424,6 @@ def train(
 
     t0, last = time.perf_counter(), time.perf_counter()
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not (progress and main))
-    val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
     # The batch of the next step is read on a worker thread while the current step runs.
     logs = (open(metrics_path, "a"), open(val_path, "a")) if main else (open(os.devnull, "w"), open(os.devnull, "w"))
     with logs[0] as log, logs[1] as val_log, ThreadPoolExecutor(1) as loader:
@@ -446,7 +444,7 @@ def train(
             state = new_state
             now = time.perf_counter()
             if (step + 1) % log_every == 0 or step + 1 == cfg.steps:
-                entry = {"step": step + 1, **values, "learning_rate": trainer.learning_rate(step), "clips_per_s": cfg.batch / max(now - last, 1e-9)}
+                entry = {"step": step + 1, **values, "clips_per_s": cfg.batch / max(now - last, 1e-9)}
                 log.write(json.dumps(entry) + "\n")
                 log.flush()
             last = now
@@ -463,17 +461,17 @@ def train(
         return summary
     M.save(run / "model", _host(trainer.network(state, ema=cfg.ema_decay is not None)))
     plot_learning_curves(_read_jsonl(metrics_path), _read_jsonl(val_path), run / "curves.png")
-    last = [row for row in _read_jsonl(val_path) if row["step"] == int(state.step)]
-    if last:
-        summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in last}
+    final_rows = [row for row in _read_jsonl(val_path) if row["step"] == int(state.step)]
+    if final_rows:
+        summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in final_rows}
     return summary
 
 
-def _validation_windows(val_dirs, data_cfg: data_lib.DataConfig, limit: int) -> list[data_lib.Window]:
-    """Non-overlapping held-out windows, at most `limit`, evenly spread over the clips."""
-    windows = data_lib.build_index(val_dirs, dataclasses.replace(data_cfg, stride=data_cfg.frames))
+def _validation_windows(val_dirs, val_cfg: data_lib.DataConfig, limit: int) -> list[data_lib.Window]:
+    """The held-out windows of `val_cfg`, at most `limit`, evenly spread over the clips."""
+    windows = data_lib.build_index(val_dirs, val_cfg)
     if not windows:
-        raise ValueError(f"no validation window in {len(val_dirs)} held-out clip folders (need crops, targets, {data_cfg.frames} frames)")
+        raise ValueError(f"no validation window in {len(val_dirs)} held-out clip folders (need crops, targets, {val_cfg.frames} frames)")
     if len(windows) > limit:
         windows = [windows[i] for i in np.linspace(0, len(windows) - 1, limit).round().astype(int)]
     return windows

@@ -38,25 +38,25 @@ from .losses import Targets, crop_projections, onscreen_label
 VALIDATION_METRICS = ("p_mpjpe_mm", "pa_mpjpe_mm", "wrist_mm", "keypoints_2d_px", "jitter", "gt_jitter", "onscreen_precision", "onscreen_recall", "onscreen_f1")
 
 
+def _with_present(clip: ClipInput, present: Bool[Array, "*batch T 2"]) -> ClipInput:
+    """The clip with these views present and the others' pixels (or tokens) zero."""
+    blank = lambda x: None if x is None else jnp.where(present.reshape(present.shape + (1,) * (x.ndim - present.ndim)), x, 0)  # noqa: E731
+    return eqx.tree_at(lambda c: (c.images, c.features, c.view_present), clip, (blank(clip.images), blank(clip.features), present),
+                       is_leaf=lambda x: x is None)  # fmt: skip
+
+
 def drop_view(clip: ClipInput, view: int) -> ClipInput:
     """One view of a clip (0 left, 1 right; leading axes allowed) blanked and marked absent."""
     if view not in (0, 1):
         raise ValueError(f"view must be 0 (left) or 1 (right), got {view!r}")
-    present = clip.view_present & jnp.broadcast_to(jnp.arange(2) != view, clip.view_present.shape)
-    blank = lambda x: None if x is None else jnp.where(present.reshape(present.shape + (1,) * (x.ndim - present.ndim)), x, 0)  # noqa: E731
-    return eqx.tree_at(lambda c: (c.images, c.features, c.view_present), clip, (blank(clip.images), blank(clip.features), present),
-                       is_leaf=lambda x: x is None)  # fmt: skip
+    return _with_present(clip, clip.view_present & jnp.broadcast_to(jnp.arange(2) != view, clip.view_present.shape))
 
 
 def drop_frames(clip: ClipInput, kept: Bool[Array, "T"]) -> tuple[ClipInput, Bool[Array, "T 21"]]:
     """A clip with the frames not `kept` blanked in both views (absent) and masked for
     the motion encoder: the dropped-frames protocol (table 4). Returns the clip and the
     motion mask."""
-    present = clip.view_present & kept[:, None]
-    blank = lambda x: None if x is None else jnp.where(present.reshape(present.shape + (1,) * (x.ndim - 2)), x, 0)  # noqa: E731
-    clip = eqx.tree_at(lambda c: (c.images, c.features, c.view_present), clip, (blank(clip.images), blank(clip.features), present),
-                       is_leaf=lambda x: x is None)  # fmt: skip
-    return clip, jnp.broadcast_to(~kept[:, None], (kept.shape[0], 21))
+    return _with_present(clip, clip.view_present & kept[:, None]), jnp.broadcast_to(~kept[:, None], (kept.shape[0], 21))
 
 
 def _corrupted(clip: ClipInput, name: str, seed: int) -> ClipInput:
@@ -145,22 +145,17 @@ def evaluate_windows(
     for lo in range(0, len(windows), batch):
         chunk = windows[lo : lo + batch]
         padded = chunk + [chunk[-1]] * (batch - len(chunk))  # one compiled shape; the padding is dropped below
-        examples, masks = [], []
-        for index, window in enumerate(padded, start=lo):
-            clip, targets = load_example(window, data_cfg)
-            if corruption is not None:
-                clip = _corrupted(clip, corruption, seed * 1_000_003 + index)
-            mask = jnp.zeros((data_cfg.frames, 21), bool)
-            if frames_dropped:
-                kept = frame_drop_mask(jax.random.fold_in(jax.random.key(seed), index), data_cfg.frames, frames_dropped)
-                clip, mask = drop_frames(clip, kept)
-            examples.append((clip, targets))
-            masks.append(mask)
+        examples = [load_example(w, data_cfg) for w in padded]
+        if corruption is not None:
+            examples = [(_corrupted(c, corruption, seed * 1_000_003 + i), t) for i, (c, t) in enumerate(examples, start=lo)]
         clip, targets = jax.tree.map(lambda *x: jnp.stack(x), *examples)
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(seed), i))(jnp.arange(lo, lo + batch))
+        kept = jax.vmap(lambda k: frame_drop_mask(k, data_cfg.frames, frames_dropped))(keys)  # all kept when none drops
+        clip, motion_mask = jax.vmap(drop_frames)(clip, kept)
         if view_dropped is not None:
             clip = drop_view(clip, view_dropped)
         fps = jnp.asarray([fps_of[w.clip] for w in padded], clip.flow.dtype)
-        joints, emitted, keypoints_2d = _predict_windows(net, hand_model, clip, jnp.stack(masks))
+        joints, emitted, keypoints_2d = _predict_windows(net, hand_model, clip, motion_mask)
         scores, gate = jax.device_get(score_windows(joints, emitted, keypoints_2d, clip, targets, fps, data_cfg.crop_size))
         per_window.append(jax.tree.map(lambda x: np.asarray(x)[: len(chunk)], scores))
         gates.append(jax.tree.map(lambda x: np.asarray(x)[: len(chunk)], gate))
