@@ -116,16 +116,10 @@ def overfit(name: str, steps: int, batch: int) -> None:
             print(f"{step + 1:6d} " + " ".join(f"{float(values[k]):13.4f}" for k in shown))
     print(f"{time.perf_counter() - t0:.0f} s")
     net = trainer.network(state)
-    errors = []
-    for window in windows:
-        clip, targets = train.load_example(window, data_cfg)
-        out = jax.jit(lambda c: net(c, hand))(clip)
-        ok = np.asarray(targets.valid)
-        p = np.asarray(jax.vmap(metrics.p_mpjpe)(out.joints, targets.joints))[ok]
-        w = np.asarray(jnp.linalg.norm(out.joints[:, 0] - targets.joints[:, 0], axis=-1))[ok]
-        errors.append((window.side, 1000 * p.mean(), 1000 * w.mean()))
-    for side, p, w in errors:
-        print(f"{side:>5} hand on its training window: P-MPJPE {p:6.1f} mm, wrist {w:6.1f} mm")
+    for side in dict.fromkeys(w.side for w in windows):
+        own = [w for w in windows if w.side == side]
+        scores = train.evaluate_windows(net, own, data_cfg, hand_model=hand, batch=len(own))
+        print(f"{side:>5} hand on its {len(own)} training windows: P-MPJPE {scores['p_mpjpe_mm']:6.1f} mm, wrist {scores['wrist_mm']:6.1f} mm")
 
 
 def _baseline(train_windows, val_windows, data_cfg) -> dict:
