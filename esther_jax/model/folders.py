@@ -22,9 +22,8 @@ import numpy as np
 
 from .. import clips, mano
 from ..cameras import StereoRig
-from ..crops import resize_crops
 from ..files import check_out_dir, exclusive_lock, remove_stale_partials
-from .esther import ESTHER, ClipInput, load, predict
+from .esther import ESTHER, clip_input_from_crops, load, predict
 
 
 def _window_starts(frames: int, window: int) -> list[int]:
@@ -49,24 +48,12 @@ def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig)
     except (OSError, ValueError, KeyError) as err:
         raise clips.ClipFormatError(f"{path} is not a crops file (images, K, R_cam_crop, flow, box): {err}") from err
     cfg = net.config
-    images, K = resize_crops(crops["images"], crops["K"], cfg.crop_size)
-    if images.ndim == 4:
-        images = np.repeat(images[..., None], 3, axis=-1)
-    T = images.shape[0]
+    T = crops["images"].shape[0]
     present = _views_present(rig, np.asarray(crops["box"], np.float64))
-    images = np.where(present[:, :, None, None, None], images, 0)
-    dtype = jnp.result_type(float)
+    crops["images"] = np.where(present.reshape(present.shape + (1,) * (crops["images"].ndim - 2)), crops["images"], 0)
     W = min(cfg.num_frames, T)
     starts = _window_starts(T, W)
-    windows = [
-        ClipInput(
-            images=jnp.asarray(np.moveaxis(images[s : s + W], -1, 2), dtype) / 255.0, features=None,
-            K=jnp.asarray(K[s : s + W], dtype), R_cam_crop=jnp.asarray(crops["R_cam_crop"][s : s + W], dtype),
-            T_rig_cams=jnp.asarray(rig.T_rig_cams, dtype), flow=jnp.asarray(crops["flow"][s : s + W], dtype),
-            view_present=jnp.asarray(present[s : s + W]),
-        )
-        for s in starts
-    ]  # fmt: skip
+    windows = [clip_input_from_crops(crops, rig.T_rig_cams, present, size=cfg.crop_size, frames=slice(s, s + W)) for s in starts]
     batch = jax.tree.map(lambda *x: jnp.stack(x), *windows)
     out = jax.device_get(predict(net, batch, mano.load_builtin("right"), is_right=side == "right"))
     owner = np.full(T, -1)
