@@ -184,21 +184,12 @@ def learn(args) -> None:
     train_dirs, val_dirs = list_clips(args.train), list_clips(args.val)
     data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size)
     out = pathlib.Path(args.out)
-    timings = {}
-    stages = [("image", args.stage1_steps, None), ("joint", args.stage2_steps, out / "stage1" if args.stage1_steps else None)]
-    for stage, steps, init in [s for s in stages if s[1] > 0]:
-        run = out / ("stage1" if stage == "image" else "stage2")
-        if (run / "model").is_dir():
-            print(f"{run} is trained: kept")
-            continue
-        tcfg = train.TrainConfig(stage=stage, steps=steps, batch=args.batch, learning_rate=args.lr, warmup_steps=min(100, steps // 10),
-                                 validate_every=args.validate_every, validation_windows=48, checkpoint_every=100)  # fmt: skip
-        t0 = time.perf_counter()
-        summary = train.train(run, train_dirs, cfg, tcfg, data_cfg=data_cfg, val_dirs=val_dirs, init=init, resume=(run / "config.json").exists())
-        timings[stage] = time.perf_counter() - t0
-        print(f"stage {stage}: {summary['steps']} steps in {timings[stage]:.0f} s; curves {summary['curves']}")
-    last = out / ("stage2" if args.stage2_steps else "stage1")
-    net = M.load(last / "model")
+    t0 = time.perf_counter()
+    final = train.train_stages(out, train_dirs, cfg, stage1_steps=args.stage1_steps, stage2_steps=args.stage2_steps, batch=args.batch,
+                               learning_rate=args.lr, val_dirs=val_dirs, validate_every=args.validate_every)  # fmt: skip
+    timings = {"both stages (or what was left of them)": time.perf_counter() - t0}
+    last = final.parent
+    net = M.load(final)
     val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)
     val_windows = train.build_index(val_dirs, val_cfg)
     result = {"config": cfg.name, "overrides": overrides, "evaluated": last.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs), "seconds": timings,

@@ -10,6 +10,7 @@ import math
 import os
 import pathlib
 import shutil
+import subprocess
 import uuid
 from collections.abc import Iterator
 
@@ -121,3 +122,14 @@ def file_sha256(path: str | pathlib.Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def git_revision() -> str | None:
+    """The commit of this checkout of esther_jax (None outside a git checkout), recorded
+    with runs and reports so a number can be traced to the code that made it."""
+    try:
+        root = pathlib.Path(__file__).resolve().parents[1]
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None

@@ -45,6 +45,7 @@ from .loop import make_optimizer as make_optimizer
 from .loop import save_checkpoint as save_checkpoint
 from .loop import stage_spec as stage_spec
 from .loop import train as train
+from .loop import train_stages as train_stages
 from .features import precompute_features as precompute_features
 from .validation import drop_frames as drop_frames
 from .validation import drop_view as drop_view

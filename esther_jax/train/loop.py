@@ -29,7 +29,6 @@ import json
 import os
 import pathlib
 import shutil
-import subprocess
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -43,7 +42,7 @@ import optax
 from .. import mano
 from .. import model as M
 from ..eval.reports import plot_learning_curves
-from ..files import atomic_output, file_sha256, read_json, write_json
+from ..files import atomic_output, file_sha256, git_revision, read_json, write_json
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine
 from .masking import AugmentRates, MaskingRates, corrupt, example_key
@@ -267,15 +266,6 @@ CHECKPOINTS = "checkpoints"
 LATEST = "latest"
 
 
-def _git_revision() -> str | None:
-    try:
-        root = pathlib.Path(__file__).resolve().parents[2]
-        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def save_checkpoint(run: pathlib.Path, state: TrainState, keep: int) -> pathlib.Path:
     """`run/checkpoints/step_<step, 8 digits>/state.eqx` (e.g. `step_00000100`), atomically,
     then the `latest` pointer;
@@ -318,7 +308,7 @@ def _run_record(model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.D
         "train": dataclasses.asdict(cfg),
         "data": dataclasses.asdict(data_cfg),
         "init": init,
-        "git_revision": _git_revision(),
+        "git_revision": git_revision(),
     }
 
 
@@ -465,6 +455,44 @@ def train(
     if final_rows:
         summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in final_rows}
     return summary
+
+
+def train_stages(
+    out: str | pathlib.Path,
+    clip_dirs: list[str | pathlib.Path],
+    model_cfg: M.ModelConfig,
+    *,
+    stage1_steps: int,
+    stage2_steps: int,
+    batch: int = 8,
+    learning_rate: float = 5e-4,
+    val_dirs: list[str | pathlib.Path] | None = None,
+    validate_every: int = 400,
+    validation_windows: int = 48,
+    seed: int = 0,
+    progress: bool = True,
+) -> pathlib.Path:
+    """The two training stages ("Training and Supervision", appendix B): stage 1 ('image') trains the image encoder
+    under its 2D, heatmap, triangulation, visibility and depth-bin guidance into
+    `out/stage1`; stage 2 ('joint') trains everything from stage 1's network into
+    `out/stage2`. A stage with 0 steps is skipped, a stage whose `model/` exists is kept,
+    an interrupted one resumes from its checkpoint. Each stage warms up over a tenth of
+    its steps (at most 100), then decays along a cosine. Returns the final model folder."""
+    out = pathlib.Path(out)
+    if stage1_steps < 0 or stage2_steps < 0 or stage1_steps + stage2_steps == 0:
+        raise ValueError(f"stage steps must be >= 0 and not both 0, got {stage1_steps} and {stage2_steps}")
+    data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
+    last = None
+    for stage, steps, name in (("image", stage1_steps, "stage1"), ("joint", stage2_steps, "stage2")):
+        if steps == 0:
+            continue
+        run = out / name
+        if not (run / "model").is_dir():
+            cfg = TrainConfig(stage=stage, steps=steps, batch=batch, learning_rate=learning_rate, warmup_steps=min(100, steps // 10),
+                              validate_every=validate_every, validation_windows=validation_windows, checkpoint_every=100, seed=seed)  # fmt: skip
+            train(run, clip_dirs, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val_dirs, init=last, resume=(run / "config.json").exists(), progress=progress)
+        last = run
+    return last / "model"
 
 
 def _validation_windows(val_dirs, val_cfg: data_lib.DataConfig, limit: int) -> list[data_lib.Window]:
