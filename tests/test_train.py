@@ -473,6 +473,9 @@ def test_robustness_conditions_run_through_the_network(synth_clip):
     assert low <= harsh["p_mpjpe_mm"] <= high
     with pytest.raises(ValueError, match="frames_dropped"):
         train.evaluate_windows(net, windows, data_cfg, frames_dropped=RUN_FRAMES + 1)
+    stress = jnp.arange(RUN_FRAMES) < 2  # appendix L's stress test: frames blanked in both views, not masked
+    pred = train.predict_windows(net, windows, data_cfg, batch=RUN_BATCH, blanked=stress)
+    assert pred.joints.shape == (2, RUN_FRAMES, 21, 3) and not bool(pred.onscreen[:, :2].any()) and bool(pred.onscreen[:, 2:].any())
 
 
 _DATA_PARALLEL = r"""

@@ -49,4 +49,7 @@ from .loop import train_stages as train_stages
 from .features import precompute_features as precompute_features
 from .validation import drop_frames as drop_frames
 from .validation import drop_view as drop_view
+from .validation import Predictions as Predictions
 from .validation import evaluate_windows as evaluate_windows
+from .validation import predict_windows as predict_windows
+from .validation import score_predictions as score_predictions
