@@ -22,7 +22,7 @@ window's targets:
 with `DataConfig.stride == frames` for non-overlapping held-out windows.
 
 `score_predictions` is that scoring for any per-window predictions (a baseline's, e.g.
-`eval.baselines.triangulation_baseline`); `evaluate_windows` predicts, then calls it.
+`fitting.baselines.triangulation_baseline`); `evaluate_windows` predicts, then calls it.
 """
 
 import equinox as eqx

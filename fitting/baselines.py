@@ -30,8 +30,8 @@ original right camera is the view 0 dropped.
 
 `mean_joint_depth` is the prior: the training windows' mean joint depth.
 
-This module imports `esther_jax.train`, which imports `esther_jax.eval`: import it as
-`esther_jax.eval.baselines` (the `eval` package does not re-export it).
+It lives with the teacher (whose fusion and triangulation it is) and is imported on its
+own, `fitting.baselines`: it reads training windows (`esther_jax.train`).
 """
 
 import functools
@@ -43,15 +43,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from fitting import fuse
+from esther_jax import clips
+from esther_jax.cameras import StereoRig, apply_transform
+from esther_jax.eval.protocols import drop_view_keypoints
+from esther_jax.model.esther import ClipInput
+from esther_jax.train.data import DataConfig, Window, load_example, mirror_targets
+from esther_jax.train.losses import Targets, crop_projections
+from esther_jax.triangulation import triangulate_batch
 
-from .. import clips
-from ..cameras import StereoRig, apply_transform
-from ..model.esther import ClipInput
-from ..train.data import DataConfig, Window, load_example, mirror_targets
-from ..train.losses import Targets, crop_projections
-from ..triangulation import triangulate_batch
-from .protocols import drop_view_keypoints
+from .fusion import fuse
 
 
 @functools.lru_cache(maxsize=64)
