@@ -34,8 +34,22 @@ def main(argv: list[str] | None = None) -> int:
     synth.add_argument("--render", action="store_true", help="render both views to video/*.mp4 and the hand crops")
     synth.add_argument("--crops", action="store_true", help="render only the hand crops and flow tokens")
     synth.add_argument("--crop-size", type=int, default=224, help="side of the hand crops in pixels (default 224; cpu-tiny uses 64)")
+    synth.add_argument(
+        "--crop-strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
+        help="rectification of the crops (paper, appendix M): offbbF, an axis-aligned crop of the image undistorted to a "
+        "pinhole of focal F px (the three give the same crops here: they are rendered directly, so only the crop camera "
+        "counts, and it does not depend on F); hc, a crop turned to look along the hand's ray. Default offbb120",
+    )  # fmt: skip
     synth.add_argument("--detector-preset", default="default", choices=["clean", "easy", "default", "hard"])
     synth.add_argument("--vertices", action="store_true", help="store ground-truth vertices in gt.npz")
+    synth.add_argument("--shape-sd", type=float, default=1.0, help="standard deviation of the hands' MANO betas (default 1; larger: held-out hand sizes)")
+    synth.add_argument("--depth-range", type=float, nargs=2, default=[0.15, 0.8], metavar=("NEAR", "FAR"),
+                       help="limits of the wrist depth in metres (default 0.15 0.8); with --depth-sampling uniform, the range covered")  # fmt: skip
+    synth.add_argument(
+        "--depth-sampling", default="egocentric", choices=["egocentric", "uniform"],
+        help="wrist depths: egocentric, the training statistics (0.22-0.7 m, mostly 0.25-0.5 m), or uniform over --depth-range "
+        "(held-out sets past the training range, e.g. --depth-range 0.1 1.1). Default egocentric",
+    )  # fmt: skip
     synth.add_argument("--seed", type=int, default=0)
     label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
     label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
@@ -96,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "label":
         return _label(args)
     elif args.command == "synth":
+        from .data.motion import MotionConfig
         from .data.synth import SynthConfig, synthesize
 
         if args.clips < 0 or args.frames < 3:
@@ -104,11 +119,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.crop_size < 16:
             print("esther synth: need --crop-size >= 16", file=sys.stderr)
             return 2
-        cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset,
-                          render=args.render, crops=args.crops, vertices=args.vertices, crop_size=args.crop_size)  # fmt: skip
         try:
+            motion = MotionConfig(shape_sd=args.shape_sd, depth_range_m=tuple(args.depth_range), depth_sampling=args.depth_sampling)
+            cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset, render=args.render,
+                              crops=args.crops, vertices=args.vertices, crop_size=args.crop_size, crop_strategy=args.crop_strategy,
+                              motion_config=motion)  # fmt: skip
             summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
-        except ValueError as err:  # a folder made with other settings
+        except ValueError as err:  # settings out of range, or a folder made with other settings
             print(f"esther synth: {err}", file=sys.stderr)
             return 2
         print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")

@@ -1,11 +1,12 @@
 import dataclasses
+import json
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from esther_jax import cameras, cli, clips, metrics
-from esther_jax.crops import crop_camera
+from esther_jax.crops import crop_camera, crop_poses, rectified_crop
 from esther_jax.data import detector, flow, motion, render, synth
 from esther_jax.rotations import axis_angle_to_matrix
 
@@ -185,3 +186,181 @@ def test_synth_cli_resumes_without_redoing_clips(tmp_path):
     side = next(iter(reference.keypoints))
     np.testing.assert_array_equal(loaded.keypoints[side]["uv"], reference.keypoints[side]["uv"])
     assert dataclasses.asdict(synth.SynthConfig())["crop_size"] == 224
+
+
+# ----------------------------------------------------------------------------- crop strategies, hand size and depth knobs
+
+_STRATEGY_MOTION = motion.MotionConfig(two_hands_probability=0.0, leave_view_probability=0.0)
+
+
+@pytest.fixture(scope="module")
+def strategy_clips():
+    """rig -> strategy -> a 4-frame clip with 32 px crops (same seed and index); the
+    focal of offbbF on the fisheye rig only (fisheye crops are the slow ones)."""
+    strategies = {"esther": ("offbb120", "hc"), "hot3d_aria": ("offbb120", "offbb90", "hc")}
+    return {
+        rig: {
+            s: synth.make_clip(4, 0, synth.SynthConfig(num_frames=4, rig=rig, crops=True, crop_size=32, crop_strategy=s, motion_config=_STRATEGY_MOTION))
+            for s in chosen
+        }
+        for rig, chosen in strategies.items()
+    }  # fmt: skip
+
+
+def test_default_crop_strategy_is_offbb120_and_recorded(strategy_clips):
+    assert synth.SynthConfig().crop_strategy == "offbb120"
+    implicit = synth.make_clip(4, 0, synth.SynthConfig(num_frames=4, crops=True, crop_size=32, motion_config=_STRATEGY_MOTION))
+    explicit = strategy_clips["esther"]["offbb120"]
+    for side in implicit.crops:
+        for k, v in implicit.crops[side].items():
+            np.testing.assert_array_equal(v, explicit.crops[side][k])
+    assert implicit.meta["crop_strategy"] == "offbb120" and strategy_clips["esther"]["hc"].meta["crop_strategy"] == "hc"
+    assert "crop_strategy" not in synth.make_clip(4, 0, synth.SynthConfig(num_frames=4, motion_config=_STRATEGY_MOTION)).meta
+    # on a pinhole rig the default is the axis-aligned crop around the stored box
+    pinhole = strategy_clips["esther"]["offbb120"]
+    side = next(iter(pinhole.crops))
+    crops = pinhole.crops[side]
+    for t, v in ((0, 0), (3, 1)):
+        expected = crop_camera(pinhole.rig.left if v == 0 else pinhole.rig.right, jnp.asarray(crops["box"][t, v]), 32, synth.CROP_PADDING)
+        np.testing.assert_allclose(crops["K"][t, v], np.asarray(expected.camera.K), rtol=1e-6)
+        np.testing.assert_array_equal(crops["R_cam_crop"][t, v], np.eye(3))
+    with pytest.raises(ValueError, match="unknown crop_strategy 'offbb100'"):
+        synth.SynthConfig(crop_strategy="offbb100")
+
+
+@pytest.mark.parametrize("rig", ["esther", "hot3d_aria"])
+def test_crop_strategies_change_only_the_crops_and_stay_consistent(strategy_clips, rig):
+    by_strategy = strategy_clips[rig]
+    reference = by_strategy["offbb120"]
+    side = next(iter(reference.crops))
+    S = 32
+    for strategy, clip in by_strategy.items():
+        for part in ("keypoints", "gt"):  # same motion, detections and ground truth
+            for k, v in getattr(reference, part)[side].items():
+                np.testing.assert_array_equal(getattr(clip, part)[side][k], v)
+        crops = clip.crops[side]
+        np.testing.assert_array_equal(crops["box"], reference.crops[side]["box"])  # same crop window in the source image
+        if strategy == "hc":  # ray-aligned: a turned crop camera, other pixels
+            assert np.abs(crops["R_cam_crop"] - np.eye(3)).max() > 1e-3
+            assert np.abs(crops["K"] - reference.crops[side]["K"]).max() > 1.0
+            assert np.mean(crops["images"] != reference.crops[side]["images"]) > 0.2
+        else:  # offbbF: the crop camera does not depend on F (documented in SynthConfig.crop_strategy)
+            np.testing.assert_allclose(crops["K"], reference.crops[side]["K"], rtol=1e-4, atol=1e-3)
+            np.testing.assert_array_equal(crops["R_cam_crop"], reference.crops[side]["R_cam_crop"])
+        # the stored crop camera (K, and its pose from R_cam_crop) projects the ground truth
+        # onto the hand: every joint inside the crop, their box centred in it
+        joints = clip.gt[side]["joints"].astype(np.float64)  # (T, 21, 3) rig frame
+        in_image = np.asarray(clip.rig.is_visible(jnp.asarray(joints, jnp.float32))).all(axis=-1)  # (2, T)
+        T_rig_crop = np.asarray(crop_poses(jnp.asarray(crops["R_cam_crop"]), clip.rig.T_rig_cams.astype(jnp.float32)), np.float64)
+        checked = 0
+        for t in range(4):
+            for v in range(2):
+                if not in_image[v, t]:
+                    continue
+                X = (joints[t] - T_rig_crop[t, v, :3, 3]) @ T_rig_crop[t, v, :3, :3]  # rig -> crop frame
+                uv = X @ crops["K"][t, v].astype(np.float64).T
+                uv = uv[:, :2] / uv[:, 2:]
+                assert np.all(X[:, 2] > 0) and np.all((uv > -0.5) & (uv < S - 0.5)), (strategy, t, v)
+                centre = 0.5 * (uv.min(axis=0) + uv.max(axis=0))
+                assert np.all(np.abs(centre - (S - 1) / 2) < 0.2 * S), (strategy, t, v, centre)
+                checked += 1
+        assert checked >= 4
+
+
+def test_flow_token_cancels_a_turning_crop_window():
+    """hc crops turn with the hand: the token's homography of K R^T cancels that turn
+    (synth._render_crops), K alone would not."""
+    cam = cameras.rig_preset("esther").left
+    scene = render.sample_scene(np.random.default_rng(1))
+    views = []
+    for box in ([700, 450, 900, 650], [740, 470, 940, 670]):  # a static scene, the window moves
+        crop = rectified_crop(cam, jnp.asarray(box, jnp.float32), "hc", 224, synth.CROP_PADDING)
+        R = np.asarray(crop.R_cam_crop, np.float64)
+        T_world_crop = np.eye(4)
+        T_world_crop[:3, :3] = R
+        image, _ = render.render_view(scene, crop.camera, T_world_crop, [])
+        views.append((image, np.asarray(crop.camera.K, np.float64), R))
+    (a, Ka, Ra), (b, Kb, Rb) = views
+    assert np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))) > 1.0  # the window turned
+    turned = flow.flow_token(a, b, Ka @ Ra.T, Kb @ Rb.T)
+    plain = flow.flow_token(a, b, Ka, Kb)
+    flags = turned[128:].reshape(8, 8).astype(bool)
+    assert flags.mean() > 0.5
+    assert np.median(np.abs(turned[:128].reshape(8, 8, 2)[flags])) * 224 < 0.3  # px
+    assert np.median(np.abs(plain[:128].reshape(8, 8, 2)[plain[128:].reshape(8, 8).astype(bool)])) * 224 > 3.0
+
+
+def _betas_draw(seed: int, two_hands_probability: float) -> np.ndarray:
+    """The clip's betas as sampled before shape_sd existed (motion.sample_clip's draws)."""
+    rng = np.random.default_rng(seed)
+    if rng.uniform() >= two_hands_probability:
+        rng.choice(["right", "left"])
+    return rng.normal(size=10)
+
+
+def test_shape_sd_scales_the_betas_of_the_same_draw():
+    rig = cameras.rig_preset("esther")
+    one = motion.sample_clip(np.random.default_rng(9), rig, 4, motion.MotionConfig())
+    two = motion.sample_clip(np.random.default_rng(9), rig, 4, motion.MotionConfig(shape_sd=2.0))
+    np.testing.assert_array_equal(one.betas, _betas_draw(9, motion.MotionConfig().two_hands_probability))  # shape_sd=1: as before
+    np.testing.assert_array_equal(two.betas, 2.0 * one.betas)
+    np.testing.assert_array_equal(two.T_world_rig, one.T_world_rig)  # every other draw is the same
+    assert sorted(two.hands) == sorted(one.hands)
+    side = next(iter(one.hands))
+    np.testing.assert_array_equal(np.asarray(two.hands[side].params.hand_pose), np.asarray(one.hands[side].params.hand_pose))
+    with pytest.raises(ValueError, match="shape_sd"):
+        motion.MotionConfig(shape_sd=-1.0)
+
+
+def test_depth_range_and_uniform_sampling_reach_past_the_training_depths():
+    def depths(cfg):
+        return np.concatenate([motion.wrist_path(np.random.default_rng([2, i]), 300, cfg, 0.09, False)[:, 2] for i in range(12)])
+
+    training = depths(motion.MotionConfig())
+    assert 0.2 < training.min() and training.max() < 0.72
+    np.testing.assert_array_equal(depths(motion.MotionConfig(depth_range_m=(0.1, 1.1))), training)  # egocentric: the range only limits
+    held_out = depths(motion.MotionConfig(depth_range_m=(0.1, 1.1), depth_sampling="uniform"))
+    assert 0.1 <= held_out.min() < 0.2 and 0.95 < held_out.max() <= 1.1 and np.mean(held_out > 0.8) > 0.15
+    with pytest.raises(ValueError, match="depth_range_m"):
+        motion.MotionConfig(depth_range_m=(0.5, 0.2))
+    with pytest.raises(ValueError, match="depth_sampling"):
+        motion.MotionConfig(depth_sampling="log")
+
+
+def test_synth_record_without_new_fields_counts_as_defaults(tmp_path):
+    out = tmp_path / "clips"
+    cfg = synth.SynthConfig(num_frames=8)
+    synth.synthesize(out, 0, cfg, seed=3, progress=False)
+    record = json.loads((out / "synth.json").read_text())
+    del record["config"]["crop_strategy"], record["config"]["motion_config"]["shape_sd"], record["config"]["motion_config"]["depth_sampling"]
+    (out / "synth.json").write_text(json.dumps(record))  # as written before these fields existed
+    synth.synthesize(out, 0, cfg, seed=3, progress=False)  # made with the defaults: accepted
+    assert json.loads((out / "synth.json").read_text())["config"]["crop_strategy"] == "offbb120"  # and rewritten whole
+    (out / "synth.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"config.crop_strategy differ; e.g. config.crop_strategy was 'offbb120', now 'hc'"):
+        synth.synthesize(out, 0, dataclasses.replace(cfg, crop_strategy="hc"), seed=3, progress=False)
+    with pytest.raises(ValueError, match=r"config.motion_config differ"):
+        synth.synthesize(out, 0, dataclasses.replace(cfg, motion_config=motion.MotionConfig(shape_sd=2.0)), seed=3, progress=False)
+    with pytest.raises(ValueError, match=r"config.num_frames differ"):
+        synth.synthesize(out, 0, synth.SynthConfig(num_frames=9), seed=3, progress=False)
+    del record["config"]["num_frames"]  # an old field missing counts as its default too (64)
+    (out / "synth.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"config.num_frames was 64, now 8"):
+        synth.synthesize(out, 0, cfg, seed=3, progress=False)
+
+
+def test_synth_cli_crop_strategy_and_motion_knobs(tmp_path, capsys):
+    out = tmp_path / "held_out"
+    knobs = ["--crop-strategy", "hc", "--shape-sd", "2", "--depth-range", "0.1", "1.1", "--depth-sampling", "uniform"]
+    assert cli.main(["synth", "--out", str(out), "--clips", "1", "--frames", "4", "--crops", "--crop-size", "32", "--seed", "6", *knobs]) == 0
+    cfg = synth.SynthConfig(num_frames=4, crops=True, crop_size=32, crop_strategy="hc",
+                            motion_config=motion.MotionConfig(shape_sd=2.0, depth_range_m=(0.1, 1.1), depth_sampling="uniform"))  # fmt: skip
+    assert json.loads((out / "synth.json").read_text())["config"] == json.loads(json.dumps(synth._config_dict(cfg)))
+    loaded = synth.load_clip(out / "clip_00000")
+    reference = synth.make_clip(6, 0, cfg)
+    assert loaded.meta["crop_strategy"] == "hc"
+    for side in reference.crops:
+        np.testing.assert_array_equal(loaded.gt[side]["betas"], reference.gt[side]["betas"])
+        np.testing.assert_array_equal(loaded.crops[side]["R_cam_crop"], reference.crops[side]["R_cam_crop"])
+    assert cli.main(["synth", "--out", str(tmp_path / "bad"), "--clips", "1", "--frames", "3", "--depth-range", "0.8", "0.2"]) == 2
+    assert "depth_range_m must be 0 < near < far" in capsys.readouterr().err

@@ -7,14 +7,17 @@ y down, z forward), then expressed in the rig frame of every frame:
   sinusoids of 0.1-0.8 Hz; tens of degrees and up to ~60 deg/s, as in head-mounted
   capture) and a few centimetres of translation, plus occasional quick head turns.
 - *Wrist*: a reach-and-hold path in front of the body (random waypoints every
-  0.5-1.5 s joined by minimum-jerk segments), 0.15-0.8 m from the eyes and mostly
-  0.25-0.5 m; some clips swing the hand out of one or both views and back.
+  0.5-1.5 s joined by minimum-jerk segments), 0.22-0.7 m from the eyes and mostly
+  0.25-0.5 m; some clips swing the hand out of one or both views and back. Held-out
+  sets can spread the waypoints evenly over another depth range
+  (`MotionConfig.depth_sampling`, `depth_range_m`).
 - *Wrist orientation*: palm facing down-inwards with fingers forward (the egocentric
   view of a working hand), with smooth random deviations of up to ~40 degrees.
 - *Articulation*: keyframes from the built-in model's natural-pose archetypes (grasp,
   release, pinch, point, flat, ...) blended with joint noise, joined by minimum-jerk
   interpolation in anatomical angles and clipped to the joint limits.
-- *Shape*: betas ~ N(0, I), one per clip (both hands belong to one person).
+- *Shape*: betas ~ N(0, shape_sd^2 I), one per clip (both hands belong to one person);
+  `MotionConfig.shape_sd` > 1 makes hand sizes past the training distribution.
 
 Left hands are sampled as right hands and mirrored (docs/architecture.md), then posed with
 the left model. Ground truth per frame and hand: MANO parameters in the rig frame,
@@ -38,6 +41,7 @@ from ..mano.builtin_generator import ARCHETYPES, archetype_angles
 from ..rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 FPS = 30.0
+DEPTH_SAMPLINGS = ("egocentric", "uniform")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +57,25 @@ class MotionConfig:
     head_translation_m: float = 0.04
     object_probability: float = 0.5
     depth_range_m: tuple[float, float] = (0.15, 0.8)
+    """(near, far) limits of the wrist's depth, metres (z in the world frame, the rig at
+    t = 0). With "egocentric" sampling it only clips (the default limits nothing the
+    waypoints reach); with "uniform" sampling it is the range the waypoints cover."""
+    depth_sampling: str = "egocentric"
+    """Depth of the wrist waypoints: "egocentric", the paper's label statistics
+    (log-normal, median 0.37 m, clipped to 0.22-0.7 m), or "uniform" in `depth_range_m`
+    (held-out sets with depths past the training range, e.g. (0.1, 1.1))."""
+    shape_sd: float = 1.0
+    """Standard deviation of the clip's MANO betas (1: the training distribution; larger:
+    hand sizes past it, beta 0 being overall size, 7% per unit)."""
+
+    def __post_init__(self):
+        near, far = self.depth_range_m
+        if not 0 < near < far:
+            raise ValueError(f"depth_range_m must be 0 < near < far metres; got {self.depth_range_m}")
+        if self.depth_sampling not in DEPTH_SAMPLINGS:
+            raise ValueError(f"unknown depth_sampling {self.depth_sampling!r}; choose one of {DEPTH_SAMPLINGS}")
+        if not 0 <= self.shape_sd < math.inf:
+            raise ValueError(f"shape_sd must be a finite number >= 0; got {self.shape_sd}")
 
 
 def _smooth_noise(rng: np.random.Generator, T: int, fps: float, amplitude: float, dims: int, freqs=(0.1, 0.8)) -> np.ndarray:
@@ -113,7 +136,10 @@ def wrist_path(rng: np.random.Generator, T: int, cfg: MotionConfig, lateral: flo
     """(T, 3) right-hand wrist positions in the world frame (metres)."""
     duration = T / cfg.fps
     times = _key_times(rng, duration, 0.5, 1.5)
-    depth = np.clip(rng.lognormal(np.log(0.37), 0.22, size=len(times)), 0.22, 0.7)
+    if cfg.depth_sampling == "uniform":
+        depth = rng.uniform(*cfg.depth_range_m, size=len(times))
+    else:
+        depth = np.clip(rng.lognormal(np.log(0.37), 0.22, size=len(times)), 0.22, 0.7)
     x = lateral + rng.normal(scale=0.07, size=len(times))
     y = 0.10 + rng.normal(scale=0.06, size=len(times))
     keys = np.stack([x, y, depth], axis=1)
@@ -199,7 +225,7 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
     right = models["right"]
     frames = np.asarray(mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right), np.float64)
     sides = ["right", "left"] if rng.uniform() < cfg.two_hands_probability else [str(rng.choice(["right", "left"]))]
-    betas = rng.normal(size=10)
+    betas = rng.normal(size=10) * cfg.shape_sd
     T_world_rig = head_poses(rng, T, cfg)
     T_rig_world = np.linalg.inv(T_world_rig)
     leave = rng.uniform() < cfg.leave_view_probability

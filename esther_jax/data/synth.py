@@ -1,7 +1,8 @@
 """The synthetic egocentric stereo clip engine: motion -> detections -> (rendering, crops,
 flow tokens) -> clip folders (docs/architecture.md format), deterministic from a seed.
 
-`esther synth --out DIR --clips N --frames T --rig esther [--render] [--detector-preset default] [--seed S]`
+`esther synth --out DIR --clips N --frames T --rig esther [--render] [--crops] [--crop-strategy offbb120]
+[--detector-preset default] [--shape-sd 1] [--depth-range NEAR FAR --depth-sampling uniform] [--seed S]`
 writes `DIR/clip_00000/ ...`. Each clip depends only on (seed, clip index), is built in
 a hidden temporary folder and renamed into place when complete, so an interrupted run
 resumes where it stopped without redoing or corrupting finished clips.
@@ -40,9 +41,27 @@ class SynthConfig:
     crops: bool = False
     """Render only the S x S hand crops (+ flow tokens), not the full views."""
     crop_size: int = CROP_SIZE
+    crop_strategy: str = "offbb120"
+    """How the hand crops are rectified to pinhole (the strategies of the paper's appendix M,
+    `crops.rectified_crop`); `meta.json` records it. Only the crops depend on it: the same
+    seed and index give the same motion, detections and ground truth.
+
+    - `offbb120` / `offbb90` / `offbb150`: axis-aligned crops of the source camera's image
+      undistorted to a wide pinhole of virtual focal 120 / 90 / 150 px. The crop window's
+      camera does not depend on that focal (the box is found in the wide image, which
+      scales with it), and crops are rendered from the scene directly, not resampled from
+      a finite wide image: the three give the same crops up to float rounding. On a
+      pinhole rig they are the plain axis-aligned crop of the image (`crops.crop_camera`).
+    - `hc`: a ray-aligned crop looking along the ray of the box centre (a crop rotation
+      `R_cam_crop`, stored with the crops), on fisheye and pinhole rigs alike.
+    """
     vertices: bool = False
     """Store ground-truth vertices in gt.npz."""
     motion_config: motion.MotionConfig = motion.MotionConfig()
+
+    def __post_init__(self):
+        if self.crop_strategy not in crop_lib.RECTIFICATION_STRATEGIES:
+            raise ValueError(f"unknown crop_strategy {self.crop_strategy!r}; choose one of {crop_lib.RECTIFICATION_STRATEGIES}")
 
 
 def clip_rng(seed: int, index: int) -> np.random.Generator:
@@ -96,6 +115,7 @@ def make_clip(seed: int, index: int, cfg: SynthConfig = SynthConfig()) -> Clip:
     }
     clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt)
     if cfg.render or cfg.crops:
+        meta["crop_strategy"] = cfg.crop_strategy
         scene = render.sample_scene(rng, grayscale=cfg.rig.startswith("hot3d"))
         _render_crops(clip, m, scene, cfg, rng)
         if cfg.render:
@@ -148,11 +168,23 @@ def _crop_box(uv: np.ndarray, size_floor: float = 40.0) -> np.ndarray:
     return np.concatenate([centre - half, centre + half])
 
 
+def _crop(camera, strategy: str, size: int, box: jax.Array) -> crop_lib.Crop:
+    """The S x S crop of `strategy` around a hand box (`SynthConfig.crop_strategy`).
+
+    On a pinhole camera the offbb strategies are the axis-aligned crop: undistorting a
+    pinhole image to another pinhole is an affine map of its pixels, which leaves the
+    crop window's camera as it is, whatever the virtual focal."""
+    if isinstance(camera, PinholeCamera) and strategy != "hc":
+        return crop_lib.crop_camera(camera, box, size, CROP_PADDING)
+    return crop_lib.rectified_crop(camera, box, strategy, size, CROP_PADDING)
+
+
 def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: SynthConfig, rng: np.random.Generator) -> None:
     """Hand-following S x S crops of both views, their intrinsics and the flow tokens.
 
     The crop window follows the hand's projected joints (an oracle tracker, smoothed
-    over time with a little jitter, as a detector-driven crop would be)."""
+    over time with a little jitter, as a detector-driven crop would be); the crop camera
+    around it is `cfg.crop_strategy`'s."""
     rig = m.rig
     S = cfg.crop_size
     T = len(m.T_world_rig)
@@ -169,10 +201,7 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
             raw = np.stack([_crop_box(uv[t, v]) for t in range(T)])
             smooth = cv2.GaussianBlur(raw.astype(np.float32)[:, None], (1, 5), 1.0)[:, 0] if T >= 5 else raw
             smooth = smooth + rng.normal(scale=0.02, size=smooth.shape) * (smooth[:, 2:3] - smooth[:, 0:1])
-            if isinstance(camera, PinholeCamera):
-                make = lambda b, camera=camera: crop_lib.crop_camera(camera, b, S, CROP_PADDING)  # noqa: E731
-            else:
-                make = lambda b, camera=camera: crop_lib.rectified_crop(camera, b, "offbb120", S, CROP_PADDING)  # noqa: E731
+            make = functools.partial(_crop, camera, cfg.crop_strategy, S)
             batch = jax.vmap(make)(jnp.asarray(smooth, jnp.result_type(float)))  # all frames at once
             fx, fy, cx, cy = (np.asarray(x, np.float64) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
             R_all = np.asarray(batch.R_cam_crop, np.float64)
@@ -187,13 +216,17 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
                 R[t, v] = R_all[t]
                 boxes[t, v] = smooth[t]
                 valid[t, v] = _inside_source(camera, crop)
-        tokens = flow.clip_flow_tokens(images[:, 0], K[:, 0], valid[:, 0])
+        # The token's homography cancels the crop window's own motion. With projections
+        # K R^T of source-camera rays (not K alone) it also cancels the window's rotation
+        # (hc crops): P_t+1 P_t^-1 = K_t+1 R_t+1^T R_t K_t^-1. Axis-aligned crops have R = I.
+        tokens = flow.clip_flow_tokens(images[:, 0], K[:, 0] @ np.swapaxes(R[:, 0], -1, -2), valid[:, 0])
         clip.crops[side] = {"images": images, "K": K, "R_cam_crop": R, "box": boxes, "flow": tokens}
 
 
 def _inside_source(camera, crop: crop_lib.Crop) -> np.ndarray:
     """(S, S) crop pixels that come from inside the source image."""
-    if isinstance(camera, PinholeCamera):  # an axis-aligned crop: the window's overlap with the image
+    axis_aligned = np.array_equal(np.asarray(crop.R_cam_crop), np.eye(3))
+    if isinstance(camera, PinholeCamera) and axis_aligned:  # the window's overlap with the image
         S = crop.camera.width
         scale = float(camera.fx) / float(crop.camera.fx)
         u = (np.arange(S) - float(crop.camera.cx)) * scale + float(camera.cx)
@@ -300,7 +333,9 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
     made with; it is written before the first clip. A folder made with other settings
     (or holding clips without that record) is refused with a ValueError that says what
     differs, so the record stays true: use another folder, or the same settings to add
-    clips or resume.
+    clips or resume. A field the record lacks (one added to `SynthConfig` or
+    `MotionConfig` after the folder was made) counts as its default, which is what the
+    folder's clips were made with; the record is then rewritten with it.
     """
     from tqdm import tqdm
 
@@ -309,13 +344,14 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
     record = out / "synth.json"
     if record.exists():
         previous = read_json(record)
+        recorded = _with_defaults(previous["config"]) if isinstance(previous.get("config"), dict) else {}
         differs = sorted(
-            [f"config.{k}" for k in settings["config"] if previous.get("config", {}).get(k) != settings["config"][k]]
+            [f"config.{k}" for k in settings["config"] if recorded.get(k) != settings["config"][k]]
             + (["seed"] if previous.get("seed") != seed else [])
         )  # fmt: skip
         if differs:
             first = differs[0]
-            old = previous.get("seed") if first == "seed" else previous.get("config", {}).get(first.split(".", 1)[1])
+            old = previous.get("seed") if first == "seed" else recorded.get(first.split(".", 1)[1])
             new = seed if first == "seed" else settings["config"][first.split(".", 1)[1]]
             raise ValueError(
                 f"{out} holds clips made with other settings ({', '.join(differs)} differ; e.g. {first} was {old!r}, "
@@ -356,3 +392,13 @@ def _config_dict(cfg: SynthConfig) -> dict:
     d = dataclasses.asdict(cfg)
     d["motion_config"] = dataclasses.asdict(cfg.motion_config)
     return d
+
+
+def _with_defaults(recorded: dict) -> dict:
+    """A config recorded in synth.json with the fields it lacks (top level and in
+    motion_config) at their defaults."""
+    defaults = strict_json(_config_dict(SynthConfig()))
+    motion_config = recorded.get("motion_config", {})
+    if isinstance(motion_config, dict):
+        motion_config = {**defaults["motion_config"], **motion_config}
+    return {**defaults, **recorded, "motion_config": motion_config}
