@@ -3,8 +3,8 @@
 Public names: `ESTHER`, `ModelConfig`, `config`, `CONFIGS`, `ABLATIONS`, `BACKBONES`,
 `parameter_counts`, `ClipInput`, `ESTHEROutput`, `HandPrediction`, `predict`, `gated`,
 `cast` (mixed precision), `mirror_clip`, `unmirror`, `trainable`, `extract_features`, `clip_input_from_crops`,
-`save`, `load`, the backbones (`ViT`, `ConvStem`, `make_backbone`,
-`load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
+`cross_view_attention` (the stereo blocks' cross-view attention probabilities), `save`, `load`,
+the backbones (`ViT`, `ConvStem`, `make_backbone`, `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
 `MotionEncoder`, `FusionDecoder`) and their outputs (`ImageEvidence`,
 `MotionEvidence`, `Decoded`), `evidence_statistics`, `decode_kinematic_tree`,
 `depth_bin_centres`.
@@ -23,6 +23,7 @@ from .config import config as config
 from .esther import ESTHER as ESTHER
 from .esther import ClipInput as ClipInput
 from .esther import cast as cast
+from .esther import cross_view_attention as cross_view_attention
 from .esther import gated as gated
 from .esther import ESTHEROutput as ESTHEROutput
 from .esther import HandPrediction as HandPrediction

@@ -142,6 +142,17 @@ class Attention(eqx.Module):
         context: Float[Array, "*batch keys dim"] | None = None,
         rope: Rope | None = None,
     ) -> Float[Array, "*batch queries dim"]:
+        return self.attend(x, context, rope)[0]
+
+    def attend(
+        self,
+        x: Float[Array, "*batch queries dim"],
+        context: Float[Array, "*batch keys dim"] | None = None,
+        rope: Rope | None = None,
+    ) -> tuple[Float[Array, "*batch queries dim"], Float[Array, "*batch heads queries keys"]]:
+        """The layer's output and its attention probabilities: per head, the softmax
+        weights of each query over the keys (`x`'s tokens for self-attention, else
+        `context`'s; each row sums to 1). `attn(...)` is `attn.attend(...)[0]`."""
         dim = x.shape[-1]
         w, b = self.qkv.weight, self.qkv.bias
         if context is None:
@@ -157,9 +168,10 @@ class Attention(eqx.Module):
         if rope is not None:
             q, k = _apply_rope(q, rope), _apply_rope(k, rope)
         logits = jnp.einsum("...qd,...kd->...qk", q, k) / math.sqrt(dim // self.heads)
-        out = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), v)
+        probs = jax.nn.softmax(logits, axis=-1)
+        out = jnp.einsum("...qk,...kd->...qd", probs, v)
         out = jnp.swapaxes(out, -2, -3)
-        return self.proj(out.reshape(out.shape[:-2] + (dim,)))
+        return self.proj(out.reshape(out.shape[:-2] + (dim,))), probs
 
 
 class Block(eqx.Module):

@@ -87,6 +87,24 @@ class ESTHER(eqx.Module):
         self.fusion_decoder = FusionDecoder(cfg, key=k3)
         self.config = cfg
 
+    def _views_seen(self, clip: ClipInput) -> Bool[Array, "T 2"]:
+        """The views the network reads of one clip: `clip.view_present`, less the second
+        view in a monocular config. Checks that `clip` is one clip of at most
+        `num_frames` frames."""
+        cfg = self.config
+        T = clip.flow.shape[0]
+        if clip.view_present.shape != (T, 2) or clip.K.shape != (T, 2, 3, 3) or clip.T_rig_cams.shape != (2, 4, 4):
+            raise ValueError(
+                f"ClipInput of one clip: flow (T, 192), view_present (T, 2), K (T, 2, 3, 3), T_rig_cams (2, 4, 4); got "
+                f"{clip.flow.shape}, {clip.view_present.shape}, {clip.K.shape}, {clip.T_rig_cams.shape} (vmap over clips)"
+            )
+        if T > cfg.num_frames:
+            raise ValueError(f"clip has {T} frames; config {cfg.name!r} was built for at most {cfg.num_frames}")
+        present = clip.view_present
+        if cfg.monocular:
+            present = present & jnp.asarray([True, False])
+        return present
+
     def patch_features(self, clip: ClipInput) -> Float[Array, "T 2 P C"]:
         """The backbone's patch tokens of the clip's crops (or its precomputed features)."""
         cfg = self.config
@@ -115,18 +133,8 @@ class ESTHER(eqx.Module):
             motion_mask: True where the motion encoder must not see F (training's token
                 masking); the decoder reads the motion mask token there too.
         """
-        cfg = self.config
-        T = clip.flow.shape[0]
-        if clip.view_present.shape != (T, 2) or clip.K.shape != (T, 2, 3, 3) or clip.T_rig_cams.shape != (2, 4, 4):
-            raise ValueError(
-                f"ClipInput of one clip: flow (T, 192), view_present (T, 2), K (T, 2, 3, 3), T_rig_cams (2, 4, 4); got "
-                f"{clip.flow.shape}, {clip.view_present.shape}, {clip.K.shape}, {clip.T_rig_cams.shape} (vmap over clips)"
-            )
-        if T > cfg.num_frames:
-            raise ValueError(f"clip has {T} frames; config {cfg.name!r} was built for at most {cfg.num_frames}")
-        present = clip.view_present
-        if cfg.monocular:
-            present = present & jnp.asarray([True, False])
+        present = self._views_seen(clip)
+        T = present.shape[0]
         mask = jnp.zeros((T, NUM_KEYPOINTS), bool) if motion_mask is None else motion_mask
         image = self.image_encoder(self.patch_features(clip), clip.K, clip.R_cam_crop, clip.T_rig_cams, present)
         masked = self.motion_encoder.mask(image.features, mask)
@@ -145,6 +153,31 @@ class ESTHER(eqx.Module):
             transl=decoded.transl,
         )
         return ESTHEROutput(image=image, motion=motion, decoded=decoded, params=params, joints=hands.joints, vertices=hands.vertices)
+
+
+@broadcasting
+def cross_view_attention(net: ESTHER, clip: ClipInput) -> Float[Array, "layers T 2 heads P P"]:
+    """The cross-view attention probabilities of the stereo blocks on one clip, as the
+    forward pass `net(clip, ...)` computes them (same weights, same code): the probe of
+    the paper's size-depth binding study (section 5.4, figure 7). Vmap over clips.
+
+    Entry `[l, t, v, h, q, k]` is the softmax weight that, in stereo block l and frame t,
+    head h of view v's patch token q (views: 0 left, 1 right) gives to patch token k of
+    the other view 1 - v. Patches are row-major over the crop's grid x grid patch tiling
+    (`crops.patch_centres`); the keys are exactly the other view's P patch tokens (no
+    class or register tokens), so every row sums to 1. The views are those the network
+    reads: a view that is absent (`view_present` False) or removed by a monocular config
+    (the second view) is the learned view-mask token at every patch, so
+    `[:, :, 1 - kept]` are the placeholder's queries into the kept view.
+
+    Memory: layers x T x 2 x heads x P^2 numbers per clip (the paper's config: 4 x 16 x
+    2 x 8 x 196^2, 160 MB in float32).
+
+    Raises:
+        ValueError: the config has no cross-view attention (`cross_view=False`).
+    """
+    present = net._views_seen(clip)
+    return net.image_encoder.cross_view_attention(net.patch_features(clip), clip.K, clip.R_cam_crop, clip.T_rig_cams, present)
 
 
 def trainable(model: ESTHER):

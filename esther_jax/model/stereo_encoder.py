@@ -10,6 +10,9 @@ views into F [T, 21, D]. Guidance heads per view and joint: heatmap logits over 
 patch grid, 2D keypoints (the heatmap's soft-argmax, crop pixels), visibility logits
 and log-spaced depth-bin logits; the 2D keypoints are triangulated (core
 `triangulate`, weighted by predicted visibility of the present views).
+`cross_view_attention` returns the stereo blocks' cross-view attention probabilities,
+computed by the same code as the forward pass (the attention probe of paper 5.4 and
+figure 7, "Why the Monocular Fallback Stays Reliable").
 """
 
 import math
@@ -74,12 +77,17 @@ class StereoBlock(eqx.Module):
         self.cross_attn = Attention(d, cfg.heads, key=k2) if cfg.cross_view else None
         self.mlp = Mlp(d, int(d * cfg.mlp_ratio), d, key=k3)
 
-    def __call__(self, x: Float[Array, "T 2 P D"]) -> Float[Array, "T 2 P D"]:
+    def __call__(self, x: Float[Array, "T 2 P D"]) -> tuple[Float[Array, "T 2 P D"], Float[Array, "T 2 heads P P"] | None]:
+        """The block's output tokens and its cross-view attention probabilities
+        `[t, v, h, q, k]`: the weight head h of view v's patch q gives to patch k of the
+        other view (None without cross-view attention)."""
         x = x + self.self_attn(self.norm_self(x))
+        probs = None
         if self.cross_attn is not None:
             y = self.norm_cross(x)
-            x = x + self.cross_attn(y, y[:, ::-1])  # each view reads the other
-        return x + self.mlp(self.norm_mlp(x))
+            read, probs = self.cross_attn.attend(y, y[:, ::-1])  # each view reads the other
+            x = x + read
+        return x + self.mlp(self.norm_mlp(x)), probs
 
 
 class StereoImageEncoder(eqx.Module):
@@ -120,23 +128,30 @@ class StereoImageEncoder(eqx.Module):
         self.merge = Dense(2 * d, d, key=keys[9])
         self.crop_size, self.grid = cfg.crop_size, cfg.grid
 
-    @broadcasting
-    def __call__(
-        self,
-        features: Float[Array, "T 2 P C"],
-        K: Float[Array, "T 2 3 3"],
-        R_cam_crop: Float[Array, "T 2 3 3"],
-        T_rig_cams: Float[Array, "2 4 4"],
-        view_present: Bool[Array, "T 2"],
-    ) -> ImageEvidence:
-        T, _, P, _ = features.shape
-        if P != self.grid**2:
-            raise ValueError(f"backbone features have {P} patches per view; this model expects {self.grid}^2 = {self.grid**2}")
-        # A blanked view's calibration may be garbage: give it the other view's (never read).
+    def _calibration(
+        self, K: Float[Array, "T 2 3 3"], R_cam_crop: Float[Array, "T 2 3 3"], view_present: Bool[Array, "T 2"]
+    ) -> tuple[Float[Array, "T 2 3 3"], Float[Array, "T 2 3 3"], PinholeCamera]:
+        """The crop cameras the encoder uses: a blanked view's calibration may be garbage,
+        so it gets the other view's (never read). Returns K, R_cam_crop and the cameras."""
         K = jnp.where(view_present[..., None, None], K, K[:, ::-1])
         R_cam_crop = jnp.where(view_present[..., None, None], R_cam_crop, R_cam_crop[:, ::-1])
         cameras = jax.vmap(jax.vmap(lambda k: PinholeCamera.from_K(k, self.crop_size, self.crop_size)))(K)
+        return K, R_cam_crop, cameras
 
+    def _stereo_tokens(
+        self,
+        features: Float[Array, "T 2 P C"],
+        cameras: PinholeCamera,
+        R_cam_crop: Float[Array, "T 2 3 3"],
+        T_rig_cams: Float[Array, "2 4 4"],
+        view_present: Bool[Array, "T 2"],
+    ) -> tuple[Float[Array, "T 2 P D"], tuple[Float[Array, "T 2 heads P P"] | None, ...]]:
+        """Each view's patch tokens (projected, ray-embedded; the view-mask token for a
+        blanked view) through the stereo blocks, and each block's cross-view attention
+        probabilities (`StereoBlock`)."""
+        P = features.shape[2]
+        if P != self.grid**2:
+            raise ValueError(f"backbone features have {P} patches per view; this model expects {self.grid}^2 = {self.grid**2}")
         tokens = self.feature_proj(features)
         if self.ray_embed is not None:
             def rays(camera, R, T_rig_cam):
@@ -147,8 +162,51 @@ class StereoImageEncoder(eqx.Module):
             tokens = tokens + self.ray_embed(ray.astype(tokens.dtype))
         tokens = jnp.where(view_present[..., None, None], tokens, self.view_mask_token)
         tokens = tokens + self.view_embed[:, None, :]
+        cross = []
         for block in self.blocks:
-            tokens = block(tokens)
+            tokens, probs = block(tokens)
+            cross.append(probs)
+        return tokens, tuple(cross)
+
+    @broadcasting
+    def cross_view_attention(
+        self,
+        features: Float[Array, "T 2 P C"],
+        K: Float[Array, "T 2 3 3"],
+        R_cam_crop: Float[Array, "T 2 3 3"],
+        T_rig_cams: Float[Array, "2 4 4"],
+        view_present: Bool[Array, "T 2"],
+    ) -> Float[Array, "layers T 2 heads P P"]:
+        """The cross-view attention probabilities of every stereo block, computed by the
+        forward pass itself (same weights, same operations; arguments as `__call__`).
+
+        Entry `[l, t, v, h, q, k]` is the softmax weight that head h of view v's patch
+        token q gives, in stereo block l and frame t, to patch token k of the other view
+        (1 - v). Patches are row-major over the grid x grid tiling of the crop (as the
+        heatmaps); the keys are exactly the other view's P patch tokens (the encoder has
+        no class or register tokens), so each row sums to 1. A blanked view's tokens are
+        the view-mask token: its queries are the placeholder's, and the other view's
+        queries attend into placeholder keys.
+        """
+        if not self.blocks or self.blocks[0].cross_attn is None:
+            raise ValueError("this network has no cross-view attention to probe (its config has cross_view=False, "
+                             "e.g. the 'no-cross-view' ablation, or no stereo blocks); probe a model with cross_view=True")  # fmt: skip
+        _, R_cam_crop, cameras = self._calibration(K, R_cam_crop, view_present)
+        _, cross = self._stereo_tokens(features, cameras, R_cam_crop, T_rig_cams, view_present)
+        return jnp.stack(cross)
+
+    @broadcasting
+    def __call__(
+        self,
+        features: Float[Array, "T 2 P C"],
+        K: Float[Array, "T 2 3 3"],
+        R_cam_crop: Float[Array, "T 2 3 3"],
+        T_rig_cams: Float[Array, "2 4 4"],
+        view_present: Bool[Array, "T 2"],
+    ) -> ImageEvidence:
+        T, _, P, _ = features.shape
+        K, R_cam_crop, cameras = self._calibration(K, R_cam_crop, view_present)
+        tokens, _ = self._stereo_tokens(features, cameras, R_cam_crop, T_rig_cams, view_present)
 
         queries = jnp.broadcast_to(self.joint_queries + self.view_embed[:, None, :], (T, 2) + self.joint_queries.shape)
         for block in self.readout:
