@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from jaxtyping import Array, Bool, Float, Shaped  # noqa: E402
 
 from ..files import atomic_output  # noqa: E402
 from ..metrics import Bootstrap, DepthScatter  # noqa: E402
@@ -88,21 +89,32 @@ def _save(fig, path: pathlib.Path) -> pathlib.Path:
 
 def plot_depth_scatter(z_gt: np.ndarray, z_pred: np.ndarray, scatter: DepthScatter, path: str | pathlib.Path, title: str = "") -> pathlib.Path:
     """Predicted vs true wrist depth with the linear fit, as the paper's figure 8."""
-    fig, ax = plt.subplots(figsize=(4.2, 4.0))
-    ax.scatter(z_gt, z_pred, s=3, alpha=0.35, color="#2b6cb0", linewidths=0)
-    lo, hi = float(np.nanmin(z_gt)), float(np.nanmax(z_gt))
-    xs = np.linspace(lo, hi, 2)
-    ax.plot(xs, xs, "k--", lw=0.8, label="ideal")
-    ax.plot(xs, float(scatter.slope) * xs + float(scatter.intercept), color="#c53030", lw=1.2, label="linear fit")
-    ax.set_xlabel("true wrist depth (m)")
-    ax.set_ylabel("predicted wrist depth (m)")
-    ax.set_title(
-        f"{title}\ncorr {float(scatter.correlation):.2f}, random {float(scatter.random_mm):.1f} mm, "
-        f"systematic {float(scatter.systematic_mm):.1f} mm",
-        fontsize=9,
-    )
-    ax.legend(fontsize=8, loc="upper left")
-    ax.set_aspect("equal", adjustable="datalim")
+    return plot_depth_scatters([(title, z_gt, z_pred, scatter)], path)
+
+
+def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthScatter]], path: str | pathlib.Path) -> pathlib.Path:
+    """Figure 8 side by side: one panel (title, true depth, predicted depth (m), its
+    `metrics.depth_scatter`) per model, on shared axes."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    everything = np.concatenate([np.concatenate([np.ravel(z_gt), np.ravel(z_pred)]) for _, z_gt, z_pred, _ in panels])
+    lo, hi = float(np.nanmin(everything)), float(np.nanmax(everything))
+    pad = 0.05 * max(hi - lo, 1e-3)
+    for ax, (title, z_gt, z_pred, scatter) in zip(axes[0], panels):
+        ax.scatter(z_gt, z_pred, s=3, alpha=0.35, color="#2b6cb0", linewidths=0)
+        xs = np.linspace(float(np.nanmin(z_gt)), float(np.nanmax(z_gt)), 2)
+        ax.plot(xs, xs, "k--", lw=0.8, label="ideal")
+        ax.plot(xs, float(scatter.slope) * xs + float(scatter.intercept), color="#c53030", lw=1.2, label="linear fit")
+        ax.set_xlabel("true wrist depth (m)")
+        ax.set_title(
+            f"{title}\ncorr {float(scatter.correlation):.2f}, random {float(scatter.random_mm):.1f} mm, "
+            f"systematic {float(scatter.systematic_mm):.1f} mm",
+            fontsize=9,
+        )
+        ax.legend(fontsize=8, loc="upper left")
+        ax.set_xlim(lo - pad, hi + pad)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set_aspect("equal", adjustable="box")
+    axes[0][0].set_ylabel("predicted wrist depth (m)")
     return _save(fig, pathlib.Path(path))
 
 
@@ -167,4 +179,115 @@ def plot_pck(thresholds_m: np.ndarray, curve: np.ndarray, path: str | pathlib.Pa
     ax.set_ylim(0, 1)
     if label:
         ax.legend(fontsize=8)
+    return _save(fig, pathlib.Path(path))
+
+
+def plot_intervals(
+    names: list[str],
+    lower: list[float],
+    upper: list[float],
+    path: str | pathlib.Path,
+    *,
+    outer: list[float] | None = None,
+    points: dict[str, list[float]] | None = None,
+    ylabel: str = "",
+    title: str = "",
+) -> pathlib.Path:
+    """One interval per category (a bar from `lower` to `upper`, a dashed line on to
+    `outer` where given) and, per series of `points`, one marker per category: e.g.
+    measured errors against the band they should fall in. NaN values are left out."""
+    fig, ax = plt.subplots(figsize=(max(3.6, 1.1 * len(names) + 1.5), 3.6))
+    x = np.arange(len(names), dtype=float)
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    ax.bar(x, hi - lo, bottom=lo, width=0.5, color="#cbd5e0", edgecolor="#718096", label="interval")
+    if outer is not None:
+        ax.vlines(x, hi, np.asarray(outer, float), colors="#718096", linestyles="--", lw=1.0, label="outer limit")
+    series = list((points or {}).items())
+    for i, (label, values) in enumerate(series):
+        offset = (i - (len(series) - 1) / 2) * 0.12
+        ax.scatter(x + offset, np.asarray(values, float), zorder=3, s=24, marker="os^Dv"[i % 5], label=label)
+    ax.set_xticks(x, names, rotation=30 if len(names) > 3 else 0, ha="right" if len(names) > 3 else "center", fontsize=8)
+    values = np.concatenate([lo, hi] + [np.asarray(v, float) for _, v in series])
+    if np.all(values[np.isfinite(values)] >= 0):
+        ax.set_ylim(bottom=0.0)  # magnitudes: show their distance from zero
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    return _save(fig, pathlib.Path(path))
+
+
+def plot_attention_shares(
+    shares: dict[str, Float[np.ndarray | Array, "layers"]],
+    chance: dict[str, float | Float[np.ndarray | Array, ""]],
+    path: str | pathlib.Path,
+    title: str = "",
+) -> pathlib.Path:
+    """The share (0 to 1) of the cross-attention into the kept view that lands on the
+    hand, across the stereo blocks L1..Ln: one line per model
+    (`eval.attention.HandAttention.share`, e.g. stereo, view-mask, pure-monocular) and,
+    dotted in its colour, the share uniform attention would give (its `chance`), as the
+    paper's size-depth binding study (figure 7)."""
+    fig, ax = plt.subplots(figsize=(4.6, 3.4))
+    layers = max(len(np.atleast_1d(s)) for s in shares.values())
+    for i, (name, share) in enumerate(shares.items()):
+        y = np.asarray(share, float)
+        ax.plot(np.arange(1, len(y) + 1), y, "-o", color=f"C{i}", label=name)
+        if name in chance:
+            ax.axhline(float(chance[name]), color=f"C{i}", ls=":", lw=1.0)
+    ax.set_xticks(np.arange(1, layers + 1), [f"L{i}" for i in range(1, layers + 1)])
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("stereo block")
+    ax.set_ylabel("attention on hand patches (share)")
+    ax.set_title(f"{title}\ndotted: uniform attention" if title else "dotted: uniform attention", fontsize=9)
+    ax.legend(fontsize=8)
+    return _save(fig, pathlib.Path(path))
+
+
+def plot_attention_maps(
+    crop_image: Shaped[np.ndarray | Array, "S S *channels"],
+    maps: dict[str, Float[np.ndarray | Array, "layers grid grid"]],
+    path: str | pathlib.Path,
+    hand_mask: Bool[np.ndarray | Array, "grid grid"] | None = None,
+    title: str = "",
+) -> pathlib.Path:
+    """Cross-attention maps over a crop, as the paper's figure 7: one row per model, one
+    column per stereo block L1..Ln.
+
+    Args:
+        crop_image: the kept view's crop, (S, S, 3) RGB or (S, S) gray, in [0, 1] or uint8
+            (a `ClipInput` crop is channels first: move the axis).
+        maps: per model, a (layers, grid, grid) map over the crop's patches
+            (`eval.attention.attention_map` of one frame, rows = v: the share of the
+            attention on each patch); the colour scale is shared by all panels.
+        hand_mask: optional (grid, grid) hand patches (`eval.attention.hand_patch_mask`),
+            outlined in white.
+    """
+    image = np.asarray(crop_image)
+    size = image.shape[0]
+    layers = max(np.asarray(m).shape[0] for m in maps.values())
+    top = max(float(np.max(m)) for m in maps.values())
+    extent = (-0.5, size - 0.5, size - 0.5, -0.5)  # pixel centres at integers
+    outline = None
+    if hand_mask is not None and 0 < np.sum(hand_mask) < np.size(hand_mask):  # some and not all: a boundary to draw
+        outline = np.asarray(hand_mask, float)
+        centres = (np.arange(outline.shape[0]) + 0.5) * size / outline.shape[0] - 0.5  # patch centres (px)
+    fig, axes = plt.subplots(len(maps), layers, figsize=(2.0 * layers, 2.0 * len(maps)), squeeze=False)
+    for row, (name, per_layer) in enumerate(maps.items()):
+        for col in range(layers):
+            ax = axes[row, col]
+            ax.imshow(image, cmap="gray" if image.ndim == 2 else None, extent=extent)
+            if col < len(per_layer):
+                ax.imshow(np.asarray(per_layer[col], float), cmap="inferno", alpha=0.55, vmin=0.0, vmax=top,
+                          interpolation="nearest", extent=extent)  # fmt: skip
+            if outline is not None:
+                ax.contour(centres, centres, outline, levels=[0.5], colors="w", linewidths=0.8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"L{col + 1}", fontsize=9)
+            if col == 0:
+                ax.set_ylabel(name, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
     return _save(fig, pathlib.Path(path))

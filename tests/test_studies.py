@@ -1,0 +1,124 @@
+"""The studies: their statistics (`eval.studies`) and every notebook executed at the smoke
+scale (as a script in this process, sharing one study root, so the networks they compare
+are trained once), one of them also through a Jupyter kernel."""
+
+import json
+import os
+import pathlib
+import runpy
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esther_jax import metrics
+from esther_jax.eval import studies
+
+NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.py"))
+REPORT_KEYS = {"study", "scale", "command", "seconds", "git_revision", "verdict", "results"}
+
+
+def _samples(z_gt, z_pred, windows):
+    return studies.DepthSamples(np.asarray(z_pred), np.asarray(z_gt), np.full(len(z_gt), 0.09), np.asarray(windows))
+
+
+def test_depth_binding_separates_systematic_from_random_error():
+    rng = np.random.default_rng(0)
+    z = rng.uniform(0.2, 0.8, 200)
+    windows = np.repeat(np.arange(20), 10)
+    exact = studies.depth_binding(_samples(z, z, windows), resamples=200)
+    assert exact["correlation"] == pytest.approx(1.0, abs=1e-6) and exact["random_mm"] < 1e-3 and exact["systematic_mm"] < 1e-3
+    compressed = studies.depth_binding(_samples(z, 0.5 * z + 0.2, windows), resamples=200)
+    assert compressed["slope"] == pytest.approx(0.5, abs=1e-5) and compressed["intercept_m"] == pytest.approx(0.2, abs=1e-5)
+    assert compressed["random_mm"] < 1e-2 and compressed["systematic_mm"] > 50
+    noisy = studies.depth_binding(_samples(z, z + rng.normal(0, 0.02, 200), windows), resamples=500)
+    assert 10 < noisy["random_mm"] < 30 and noisy["intervals"]["random_mm"][0] < noisy["random_mm"] < noisy["intervals"]["random_mm"][1]
+    assert noisy["windows"] == 20 and noisy["frames"] == 200
+
+
+def test_weighted_scatter_of_one_draw_per_window_is_depth_scatter():
+    z = jnp.linspace(0.2, 0.9, 30)
+    zp = z * 0.9 + 0.03 * jnp.sin(40 * z)
+    window = jnp.repeat(jnp.arange(6), 5)
+    stats = studies._resampled_scatter(zp, z, window, jnp.arange(6)[None])[0]
+    ref = metrics.depth_scatter(zp, z)
+    np.testing.assert_allclose(stats, [ref.correlation, ref.random_mm, ref.systematic_mm, ref.slope], rtol=1e-4)
+
+
+def test_depth_binding_with_too_few_frames_reports_counts():
+    result = studies.depth_binding(_samples([0.3, 0.4], [0.3, 0.4], [0, 1]))
+    assert result == {"frames": 2, "windows": 2}
+
+
+def test_separated_and_table():
+    assert studies.separated([1.0, 2.0], [2.5, 3.0]) is True
+    assert studies.separated([1.0, 2.6], [2.5, 3.0]) is False
+    assert studies.separated(None, [1.0, 2.0]) is None
+    text = studies.table([{"m": "a", "x": 12.345, "y": None, "intervals": {"x": [11.0, 13.5]}}], [("x", "X"), ("y", "Y")], first="m")
+    assert text.splitlines()[2] == "| a | 12.3 [11.0, 13.5] | n/a |"
+
+
+def test_scale_from_env(monkeypatch):
+    monkeypatch.setenv(studies.SCALE_ENV, "full")
+    assert studies.scale_from_env().model == "cpu-small"
+    monkeypatch.setenv(studies.SCALE_ENV, "huge")
+    with pytest.raises(ValueError, match="smoke"):
+        studies.scale_from_env()
+
+
+@pytest.fixture(scope="module")
+def study_env(tmp_path_factory):
+    """One smoke-scale study root for every notebook of this module."""
+    root = tmp_path_factory.mktemp("studies")
+    env = {studies.SCALE_ENV: "smoke", studies.ROOT_ENV: str(root / "root"), studies.OUT_ENV: str(root / "reports")}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    yield root / "reports"
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+def _check_report(out: pathlib.Path, study: str) -> dict:
+    record = json.loads((out / f"{study}.json").read_text())
+    assert REPORT_KEYS <= set(record) and record["scale"]["name"] == "smoke" and record["seconds"] > 0
+    text = (out / f"{study}.md").read_text()
+    assert text.startswith("# ") and record["verdict"] in text and "## How this was made" in text
+    for image in (line.split("](", 1)[1].rstrip(")") for line in text.splitlines() if line.startswith("![")):
+        assert (out / image).is_file()
+    return record
+
+
+STUDY_OF = {
+    "01_size_depth_binding": "size_depth_binding", "02_missing_views": "missing_views", "03_dropped_frames": "dropped_frames",
+    "04_corruptions": "corruptions", "05_undistortion": "undistortion", "06_gate": "gate", "07_ablations": "ablations",
+    "08_teacher_validation": "teacher_validation",
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_runs_at_smoke_scale(notebook, study_env):
+    runpy.run_path(str(notebook), run_name="__main__")
+    record = _check_report(study_env, STUDY_OF[notebook.stem])
+    assert record["results"]
+
+
+def test_every_study_has_a_notebook():
+    assert sorted(p.stem for p in NOTEBOOKS) == sorted(STUDY_OF)
+
+
+def test_notebook_runs_in_a_jupyter_kernel(study_env, tmp_path):
+    jupytext = pytest.importorskip("jupytext")
+    nbclient = pytest.importorskip("nbclient")
+    notebook = next(p for p in NOTEBOOKS if p.stem == "06_gate")
+    out = tmp_path / "kernel_reports"
+    os.environ[studies.OUT_ENV] = str(out)
+    try:
+        nb = jupytext.read(notebook)
+        nbclient.NotebookClient(nb, kernel_name="python3", timeout=900, resources={"metadata": {"path": str(tmp_path)}}).execute()
+    finally:
+        os.environ[studies.OUT_ENV] = str(study_env)
+    assert any(o.get("name") == "stdout" for cell in nb.cells if cell.cell_type == "code" for o in cell.get("outputs", []))
+    assert _check_report(out, "gate")["results"]["clean"]["hand_frames"] > 0
