@@ -33,7 +33,7 @@
 # %%
 import time
 
-import numpy as np
+import jax.numpy as jnp
 
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_attention_maps, plot_attention_shares, plot_depth_scatters
@@ -68,7 +68,7 @@ print(summary)
 # %%
 panels = []
 for name, s in samples.items():
-    panels.append((name, s.z_gt, s.z_pred, depth_scatter(np.asarray(s.z_pred), np.asarray(s.z_gt))))
+    panels.append((name, s.z_gt, s.z_pred, depth_scatter(jnp.asarray(s.z_pred), jnp.asarray(s.z_gt))))
 figures = [plot_depth_scatters(panels, out / "size_depth_binding_scatter.png")]
 
 # %% [markdown]
@@ -81,7 +81,7 @@ attention, examples = {}, {}
 for name, (net, dropped) in MODELS.items():
     attention[name], examples[name] = studies.attention_shares(net, windows, scale, view_dropped=dropped)
     print(f"{name:<16} share on the hand per block {attention[name]['share']}, chance {attention[name]['chance']}")
-figures.append(plot_attention_shares({k: v["share"] for k, v in attention.items() if v["share"] is not None},
+figures.append(plot_attention_shares({k: jnp.asarray(v["share"]) for k, v in attention.items() if v["share"] is not None},
                                      {k: v["chance"] for k, v in attention.items() if v["share"] is not None},
                                      out / "size_depth_binding_attention.png", title="cross-attention into the kept view"))
 first = examples["stereo"]

@@ -30,6 +30,7 @@
 import time
 
 from esther_jax.eval import studies
+from esther_jax.eval.reports import plot_metric_vs_condition
 from esther_jax.train import validation
 from fitting import baselines
 
@@ -55,6 +56,8 @@ COLUMNS = [("p_mpjpe_mm", "P-MPJPE mm"), ("pa_mpjpe_mm", "PA-MPJPE mm"), ("wrist
 rows = [{"method / condition": f"{m} / {c}", **r} for m, conds in results.items() for c, r in conds.items()]
 summary = studies.table(rows, COLUMNS, first="method / condition")
 print(summary)
+recs = [r for method, conds in results.items() for r in studies.records(method, conds)]
+figures = [plot_metric_vs_condition(recs, m, list(CONDITIONS), out / f"missing_views_{m}.png", xlabel="views") for m in ("wrist", "p_mpjpe")]
 
 # %%
 ours, anchored, tri = (results[m]["right view dropped"] for m in ("esther", "anchored-wrist", "triangulation"))
@@ -74,4 +77,4 @@ print(verdict)
 # %%
 studies.write_report(out, "missing_views", title="Missing views (table 2)", verdict=verdict, scale=scale,
                      seconds=time.perf_counter() - start, results={"methods": results, "prior_depth_m": prior_depth},
-                     sections=["## Results (mean [95% bootstrap interval] over held-out windows)", summary])
+                     sections=["## Results (mean [95% bootstrap interval] over held-out windows)", summary], figures=figures)

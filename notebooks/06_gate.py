@@ -28,6 +28,7 @@
 import time
 
 from esther_jax.eval import studies
+from esther_jax.eval.reports import Record, plot_metric_vs_condition
 
 start = time.perf_counter()
 scale = studies.scale_from_env()
@@ -42,6 +43,8 @@ summary = studies.table(rows, [("precision", "precision"), ("recall", "recall"),
                                ("ungated", "ungated jitter"), ("gt_gated", "GT-gated jitter"), ("prediction_gated", "prediction-gated jitter")],
                         first="condition")
 print(summary)
+recs = [Record(gating, name, "jitter", result[name]["jitter"][gating], unit="m/s^2") for name in ("clean", "stress") for gating in result[name]["jitter"]]
+figures = [plot_metric_vs_condition(recs, "jitter", ["clean", "stress"], out / "gate_jitter.png", xlabel="condition")]
 
 # %%
 clean, stress = result["clean"], result["stress"]
@@ -59,4 +62,4 @@ print(verdict)
 # %%
 studies.write_report(out, "gate", title="The on-screen gate and jitter (appendix L)", verdict=verdict, scale=scale,
                      seconds=time.perf_counter() - start, results={**result, "reproduces": holds},
-                     sections=["## Results (pooled over held-out frames; jitter in m/s²)", summary])
+                     sections=["## Results (pooled over held-out frames; jitter in m/s²)", summary], figures=figures)

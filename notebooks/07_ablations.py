@@ -31,6 +31,7 @@ import time
 
 from esther_jax import model as M
 from esther_jax.eval import studies
+from esther_jax.eval.reports import plot_metric_vs_condition
 
 PAPER_MPJPE = {
     "esther": 19.60, "no-plucker": 33.60, "no-cross-view": 28.70, "no-guidance-masking-augmentation": 23.10, "no-flow-token": 22.10,
@@ -61,6 +62,7 @@ summary = studies.table(table_rows, [("mpjpe_mm", "MPJPE mm"), ("delta_mm", "Δ 
                                      ("p_mpjpe_mm", "P-MPJPE mm"), ("wrist_mm", "wrist mm"), ("paper_mm", "paper MPJPE"),
                                      ("paper_delta_mm", "paper Δ")], first="variant")  # fmt: skip
 print(summary)
+figures = [plot_metric_vs_condition(studies.records("cpu network", results), "mpjpe", list(results), out / "ablations_mpjpe.png", xlabel="variant")]
 
 # %%
 ranked = sorted((r for r in results if r != "esther"), key=lambda r: -results[r]["mpjpe_mm"])
@@ -79,4 +81,5 @@ print(verdict)
 # %%
 studies.write_report(out, "ablations", title="Ablations (table 5)", verdict=verdict, scale=scale, seconds=time.perf_counter() - start,
                      results={"rows": results, "paper_mpjpe_mm": PAPER_MPJPE, "ranked": ranked},
-                     sections=["## Results (absolute MPJPE, rig frame; mean [95% bootstrap interval] over held-out windows)", summary])
+                     sections=["## Results (absolute MPJPE, rig frame; mean [95% bootstrap interval] over held-out windows)", summary],
+                     figures=figures)

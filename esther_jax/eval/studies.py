@@ -1,9 +1,11 @@
 """The paper's studies as library runners: data, trained models, conditions, statistics
 and reports. The notebooks under `notebooks/` are thin scripts over these functions.
 
-- **Scale** (`StudyScale`, `scale_from_env`): `smoke` (a tiny network and a few steps;
-  what the tests execute) or `full` (`cpu-small`, the two training stages of the learning
-  benchmark, a few hundred held-out windows), chosen by `ESTHER_STUDY_SCALE`.
+- **Scale** (`StudyScale`, `scale_from_env`): `smoke` (untrained `cpu-tiny` networks on
+  a few tiny clips: every study's pipeline and report in seconds, what the tests execute;
+  training itself is tested with `esther_jax.train`) or `full` (`cpu-small`, the two
+  training stages of the learning benchmark, a few hundred held-out windows), chosen by
+  `ESTHER_STUDY_SCALE`.
 - **Data and models** (`dataset`, `trained`): synthetic clip folders and trained networks
   under one root (`ESTHER_STUDY_ROOT`, default `~/.cache/esther_jax/studies/<scale>`),
   made on first use and reused by every study: the studies share the held-out clips and
@@ -73,7 +75,7 @@ class StudyScale:
 
 
 SCALES: dict[str, StudyScale] = {
-    "smoke": StudyScale("smoke", "cpu-tiny", train_clips=2, heldout_clips=2, clip_frames=16, stage1_steps=1, stage2_steps=2,
+    "smoke": StudyScale("smoke", "cpu-tiny", train_clips=2, heldout_clips=2, clip_frames=16, stage1_steps=0, stage2_steps=0,
                         batch=2, learning_rate=5e-4, windows=4, resamples=200),
     "full": StudyScale("full", "cpu-small", train_clips=240, heldout_clips=24, clip_frames=64, stage1_steps=400, stage2_steps=1200,
                        batch=8, learning_rate=5e-4, windows=None, resamples=2000),
@@ -101,12 +103,14 @@ def study_root(scale: StudyScale) -> pathlib.Path:
 
 
 def report_dir(scale: StudyScale) -> pathlib.Path:
-    """Where reports go: `ESTHER_STUDY_OUT`, else `docs/studies` of this checkout at the
-    full scale and `<root>/reports` at the smoke scale (never the committed reports)."""
+    """Where reports go: `ESTHER_STUDY_OUT`, else, at the full scale run from a checkout
+    of esther-jax, its `docs/studies` (the committed reports), and `<root>/reports`
+    otherwise (the smoke scale never touches the committed reports)."""
     if os.environ.get(OUT_ENV):
         return pathlib.Path(os.environ[OUT_ENV])
-    if scale.name == "full":
-        return pathlib.Path(__file__).resolve().parents[2] / "docs" / "studies"
+    checkout = pathlib.Path(__file__).resolve().parents[2]
+    if scale.name == "full" and (checkout / "pyproject.toml").is_file() and (checkout / "docs").is_dir():
+        return checkout / "docs" / "studies"
     return study_root(scale) / "reports"
 
 
@@ -144,8 +148,11 @@ def dataset(scale: StudyScale, name: str, *, rig: str = "esther", crop_strategy:
 def trained(scale: StudyScale, variant: str = "esther", *, progress: bool = True) -> M.ESTHER:
     """The scale's network (or ablation row `variant`) trained on the 'train' dataset by
     the two stages (`train.train_stages`), validated on 'heldout'; trained once under
-    `<root>/runs/<variant>` and loaded from there afterwards."""
+    `<root>/runs/<variant>` and loaded from there afterwards. A scale without training
+    steps (smoke) gives the network as initialised from seed 0."""
     cfg = model_config(scale, variant)
+    if scale.stage1_steps == scale.stage2_steps == 0:  # the smoke scale: the network as initialised from the seed
+        return M.ESTHER(cfg, key=jax.random.key(0))
     final = train_stages(study_root(scale) / "runs" / variant, dataset(scale, "train", progress=progress), cfg,
                          stage1_steps=scale.stage1_steps, stage2_steps=scale.stage2_steps, batch=scale.batch,
                          learning_rate=scale.learning_rate, val_dirs=dataset(scale, "heldout", progress=progress), progress=progress)  # fmt: skip
@@ -185,6 +192,14 @@ def condition_table(
     cfg = data_config(scale, held_out=True)
     return {name: evaluate_windows(net, windows, cfg, batch=scale.batch, seed=seed, intervals=True, resamples=scale.resamples, **kw)
             for name, kw in conditions.items()}  # fmt: skip
+
+
+def no_image(scale: StudyScale) -> dict:
+    """The control condition of the robustness studies: every view of every frame blanked
+    (absent, not masked), so the network sees no pixel. A metric that does not move under
+    a perturbation is robust only if it moves here: otherwise the network ignores the
+    images and its invariance says nothing."""
+    return {"blanked": jnp.ones(data_config(scale, held_out=True).frames, bool)}
 
 
 def separated(a: list[float] | None, b: list[float] | None) -> bool | None:
