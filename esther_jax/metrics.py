@@ -259,19 +259,23 @@ class DepthScatter(eqx.Module):
     count: Float[Array, ""]
 
 
-def depth_scatter(z_pred: Float[Array, "n"], z_gt: Float[Array, "n"], mask: Bool[Array, "n"] | None = None) -> DepthScatter:
-    """Least-squares line, correlation and the systematic / random decomposition."""
+def depth_scatter(
+    z_pred: Float[Array, "n"], z_gt: Float[Array, "n"], mask: Bool[Array, "n"] | None = None, weights: Float[Array, "n"] | None = None
+) -> DepthScatter:
+    """Least-squares line, correlation and the systematic / random decomposition of the
+    samples in `mask`, each counted `weights` times (e.g. how often a bootstrap resample
+    draws it; `count` is then the weighted number)."""
     if mask is None:
         mask = jnp.ones(z_pred.shape, bool)
     mask = mask & jnp.isfinite(z_pred) & jnp.isfinite(z_gt)
-    w = mask.astype(z_pred.dtype)
+    w = mask.astype(z_pred.dtype) if weights is None else jnp.where(mask, weights, 0.0).astype(z_pred.dtype)
     n = jnp.sum(w)
     safe_n = jnp.maximum(n, 1.0)
     zp = jnp.where(mask, z_pred, 0.0)
     zg = jnp.where(mask, z_gt, 0.0)
-    mean_p, mean_g = jnp.sum(zp) / safe_n, jnp.sum(zg) / safe_n
-    dp, dg = (zp - mean_p) * w, (zg - mean_g) * w
-    var_g, var_p, cov = jnp.sum(dg * dg) / safe_n, jnp.sum(dp * dp) / safe_n, jnp.sum(dp * dg) / safe_n
+    mean_p, mean_g = jnp.sum(w * zp) / safe_n, jnp.sum(w * zg) / safe_n
+    dp, dg = zp - mean_p, zg - mean_g
+    var_g, var_p, cov = jnp.sum(w * dg * dg) / safe_n, jnp.sum(w * dp * dp) / safe_n, jnp.sum(w * dp * dg) / safe_n
     # Without spread in z_gt (or z_pred) the slope (correlation) is 0 with a zero
     # gradient, not d(cov) / tiny (double where).
     tiny = jnp.finfo(z_pred.dtype).tiny

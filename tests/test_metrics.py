@@ -151,6 +151,12 @@ def test_depth_scatter_recovers_a_linear_model(x64):
     assert float(d.correlation) == pytest.approx(np.corrcoef(z_pred, z_gt)[0, 1], rel=1e-9)
     masked = metrics.depth_scatter(jnp.asarray(z_pred), jnp.asarray(z_gt), jnp.asarray(rng.uniform(size=z_gt.shape) < 0.5))
     assert float(masked.count) < z_gt.size and float(masked.slope) == pytest.approx(a, abs=0.02)
+    # integer weights count a sample that many times (a bootstrap resample)
+    k = rng.integers(0, 3, size=200)
+    weighted = metrics.depth_scatter(jnp.asarray(z_pred[:200]), jnp.asarray(z_gt[:200]), weights=jnp.asarray(k, jnp.float64))
+    repeated = metrics.depth_scatter(jnp.asarray(np.repeat(z_pred[:200], k)), jnp.asarray(np.repeat(z_gt[:200], k)))
+    for field in ("slope", "intercept", "correlation", "random_mm", "systematic_mm", "count"):
+        assert float(getattr(weighted, field)) == pytest.approx(float(getattr(repeated, field)), rel=1e-9)
 
 
 def test_bootstrap_is_reproducible_and_covers_at_the_nominal_rate():

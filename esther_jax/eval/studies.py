@@ -240,25 +240,17 @@ def wrist_depths(net: M.ESTHER, windows: list[data_lib.Window], scale: StudyScal
     return DepthSamples(z_pred[valid], z_gt[valid], palm[valid], window[valid])
 
 
-def _weighted_scatter(z_pred: Float[Array, "n"], z_gt: Float[Array, "n"], w: Float[Array, "n"]) -> Float[Array, "4"]:
-    """(correlation, random mm, systematic mm, slope) of `metrics.depth_scatter` with
-    frame weights `w` (a frame drawn k times counts k times)."""
-    n = jnp.maximum(jnp.sum(w), 1.0)
-    mp, mg = jnp.sum(w * z_pred) / n, jnp.sum(w * z_gt) / n
-    dp, dg = z_pred - mp, z_gt - mg
-    vg, vp, cov = jnp.sum(w * dg * dg) / n, jnp.sum(w * dp * dp) / n, jnp.sum(w * dp * dg) / n
-    slope = cov / jnp.maximum(vg, 1e-12)
-    fit = slope * z_gt + (mp - slope * mg)
-    rms = lambda x: jnp.sqrt(jnp.sum(w * x * x) / n) * 1000.0  # noqa: E731
-    return jnp.stack([cov / jnp.sqrt(jnp.maximum(vg * vp, 1e-24)), rms(z_pred - fit), rms(fit - z_gt), slope])
-
-
 @jax.jit
 def _resampled_scatter(z_pred: Float[Array, "n"], z_gt: Float[Array, "n"], window: Array, picks: Array) -> Float[Array, "resamples 4"]:
-    """`_weighted_scatter` of each resample of windows (`picks`: (resamples, W) window
-    indices drawn with replacement; every frame of a drawn window counts)."""
-    count = lambda pick: jnp.zeros(picks.shape[1], z_pred.dtype).at[pick].add(1.0)[window]  # noqa: E731
-    return jax.lax.map(lambda pick: _weighted_scatter(z_pred, z_gt, count(pick)), picks, batch_size=64)
+    """(correlation, random mm, systematic mm, slope) of `metrics.depth_scatter` for each
+    resample of windows (`picks`: (resamples, W) window indices drawn with replacement;
+    every frame of a drawn window counts as often as its window is drawn)."""
+
+    def one(pick):
+        fit = metrics.depth_scatter(z_pred, z_gt, weights=jnp.zeros(picks.shape[1], z_pred.dtype).at[pick].add(1.0)[window])
+        return jnp.stack([fit.correlation, fit.random_mm, fit.systematic_mm, fit.slope])
+
+    return jax.lax.map(one, picks, batch_size=64)
 
 
 def depth_binding(samples: DepthSamples, *, mask: np.ndarray | None = None, resamples: int = 2000, seed: int = 0) -> dict:
