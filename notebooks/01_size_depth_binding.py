@@ -99,7 +99,9 @@ verdict = (
     f"**{'Reproduces' if ordered and apart else 'Partly reproduces' if ordered else 'Does not reproduce'}.** "
     + "; ".join(f"{name}: correlation {corr[name]:.2f}, random scatter {rand[name]:.1f} mm (paper {PAPER[name][0]:.2f}, {PAPER[name][1]:.0f} mm)"
                 for name in MODELS if corr[name] is not None)
-    + f". The view-mask model's correlation interval {'lies apart from' if apart else 'overlaps'} the pure-monocular model's. "
+    + ". The view-mask model's correlation interval "
+    + (("lies above" if corr["view-mask"] > corr["pure monocular"] else "lies below") if apart else "overlaps")
+    + " the pure-monocular model's (the paper: above). "
     f"Held-out windows inside and past the training distribution together ({len(windows)} windows); the table splits them. "
     + "Share of the cross-attention into the kept view on the hand, last block: "
     + ", ".join(f"{k} {v['share'][-1]:.2f}" for k, v in attention.items() if v["share"] is not None)

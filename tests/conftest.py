@@ -55,8 +55,9 @@ def _release_compiled_programs():
 # Longest modules first (cold compilation cache, 2 cores: measured seconds), so the two
 # xdist workers, which take whole files in collection order, finish together.
 _MODULE_SECONDS = {
-    "test_train": 260, "test_model": 230, "test_fitting": 200, "test_readme": 65, "test_synth": 60,
-    "test_triangulation": 60, "test_mano": 50, "test_cameras": 50, "test_cli": 35, "test_rotations": 35,
+    "test_train": 260, "test_model": 230, "test_fitting": 200, "test_studies": 150, "test_synth": 100, "test_readme": 65,
+    "test_triangulation": 60, "test_mano": 50, "test_cameras": 50, "test_teacher_validation": 45, "test_cli": 35,
+    "test_rotations": 35, "test_baselines": 30, "test_attention": 20,
 }  # fmt: skip
 
 

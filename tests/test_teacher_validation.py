@@ -18,7 +18,7 @@ FRAMES = 16
 @pytest.fixture(scope="module")
 def validated(tmp_path_factory):
     root = tmp_path_factory.mktemp("validation")
-    return root, fitting.run_validation(root, CONDITIONS, num_clips=1, num_frames=FRAMES, num_resamples=200)
+    return root, validation.run_validation(root, CONDITIONS, num_clips=1, num_frames=FRAMES, num_resamples=200)
 
 
 def test_results_have_the_schema_and_sane_values(validated):
@@ -59,7 +59,7 @@ def test_hand_frames_reproduce_the_teachers_quality_record(validated):
         for side in clips.SIDES:
             if not clips.hand_file(clip, side, "gt").is_file():
                 continue
-            frames = fitting.hand_frames(clip, folder / "labels" / clip.name, side)
+            frames = validation.hand_frames(clip, folder / "labels" / clip.name, side)
             ours = fitting.label_quality({k: frames[k] for k in validation.QUALITY_KEYS}, frames["observed"], frames["stereo"], frames["valid"])
             recorded = json.loads((folder / "labels" / clip.name / "hands" / side / "quality.json").read_text())
             for group in ("stereo", "monocular", "all"):
@@ -101,41 +101,41 @@ def test_the_band_is_ordered_and_the_check_is_honest(validated):
 
 def test_tables_and_figures(validated, tmp_path):
     _, results = validated
-    table = fitting.validation_table(results)
+    table = validation.validation_table(results)
     lines = table.strip().splitlines()
     assert len(lines) == 2 + len(results) and all(line.count("|") == lines[0].count("|") for line in lines)
     for line, r in zip(lines[2:], results):
         assert line.startswith(f"| {r['condition']} |")
-    assert fitting.validation_table(results, "detector") != table
-    quality = fitting.label_quality_table(results[0])
+    assert validation.validation_table(results, "detector") != table
+    quality = validation.label_quality_table(results[0])
     assert quality.count("\n| ") == 1 + len(validation.QUANTITY_LABELS) and "Depth per pixel of disparity" in quality
-    assert fitting.plot_band_check(results, tmp_path / "band.png").stat().st_size > 0
-    assert fitting.plot_error_vs_depth(results, tmp_path / "depth.png").stat().st_size > 0
+    assert validation.plot_band_check(results, tmp_path / "band.png").stat().st_size > 0
+    assert validation.plot_error_vs_depth(results, tmp_path / "depth.png").stat().st_size > 0
 
 
 def test_resume_keeps_finished_work(validated):
     root, results = validated
     labels = clips.hand_file(root / "esther_mocap_default" / "labels" / "clip_00000", "right", "labels")
     stamp = labels.stat().st_mtime_ns
-    again = fitting.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES, num_resamples=200)
+    again = validation.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES, num_resamples=200)
     assert again[0]["synth"]["made"] == 0 and again[0]["label"]["skipped"] == ["clip_00000"] and not again[0]["label"]["labelled"]
     assert labels.stat().st_mtime_ns == stamp
     assert again[0]["accuracy"]["p_mpjpe"]["value"] == results[0]["accuracy"]["p_mpjpe"]["value"]
     assert again[0]["band"] == results[0]["band"]
     with pytest.raises(ValueError, match="other settings"):  # the record of the held-out clips stays true
-        fitting.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES + 1)
-    grown = fitting.run_validation(root, CONDITIONS[:1], num_clips=2, num_frames=FRAMES, num_resamples=200)
+        validation.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES + 1)
+    grown = validation.run_validation(root, CONDITIONS[:1], num_clips=2, num_frames=FRAMES, num_resamples=200)
     assert grown[0]["synth"]["made"] == 1 and grown[0]["label"]["labelled"] == ["clip_00001"] and grown[0]["label"]["skipped"] == ["clip_00000"]
     assert labels.stat().st_mtime_ns == stamp and grown[0]["hand_frames"]["frames"] > again[0]["hand_frames"]["frames"]
     with pytest.raises(ValueError, match="holds 2 clips, 1 were asked for"):  # results would not be of the clips asked for
-        fitting.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES)
+        validation.run_validation(root, CONDITIONS[:1], num_clips=1, num_frames=FRAMES)
 
 
 def test_bad_conditions_are_refused_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="unknown rig preset 'nope'"):
-        fitting.run_validation(tmp_path / "v", [("nope", "default")])
+        validation.run_validation(tmp_path / "v", [("nope", "default")])
     with pytest.raises(ValueError, match="unknown detector preset 'perfect'"):
-        fitting.run_validation(tmp_path / "v", [("esther", "perfect")])
+        validation.run_validation(tmp_path / "v", [("esther", "perfect")])
     with pytest.raises(ValueError, match="repeat"):
-        fitting.run_validation(tmp_path / "v", [("esther", "hard"), ("esther", "hard")])
+        validation.run_validation(tmp_path / "v", [("esther", "hard"), ("esther", "hard")])
     assert not (tmp_path / "v").exists()
