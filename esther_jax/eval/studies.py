@@ -298,10 +298,12 @@ def inside(samples: DepthSamples, ranges: dict[str, list[float]]) -> Bool[np.nda
 
 
 @eqx.filter_jit
-def _attention_on_hand(net: M.ESTHER, clip: M.ClipInput, joints: Float[Array, "T 21 3"]) -> tuple[HandAttention, Float[Array, "layers T grid grid"]]:
+def _attention_on_hand(
+    net: M.ESTHER, clip: M.ClipInput, joints: Float[Array, "T 21 3"]
+) -> tuple[HandAttention, Float[Array, "layers T grid grid"], Bool[Array, "T 2 grid grid"]]:
     mask = hand_patch_mask(clip, joints, crop_size=net.config.crop_size, grid=net.config.grid)
     attention = M.cross_view_attention(net, clip)
-    return attention_on_hand(attention, mask, kept_view=0), attention_map(attention, kept_view=0)
+    return attention_on_hand(attention, mask, kept_view=0), attention_map(attention, kept_view=0), mask
 
 
 def attention_shares(
@@ -319,15 +321,14 @@ def attention_shares(
         clip, targets = data_lib.load_example(w, cfg)
         if view_dropped is not None:
             clip = drop_view(clip, view_dropped)
-        result, maps = _attention_on_hand(net, clip, targets.joints)
+        result, maps, mask = _attention_on_hand(net, clip, targets.joints)
         n = int(result.frames)
         if n:
             share_sum, chance_sum, frames = share_sum + np.asarray(result.share) * n, chance_sum + float(result.chance) * n, frames + n
         if example is None and n:
             t = cfg.frames // 2
-            mask = hand_patch_mask(clip, targets.joints, crop_size=cfg.crop_size, grid=net.config.grid)[t, 0]
             image = None if clip.images is None else np.moveaxis(np.asarray(clip.images[t, 0]), 0, -1)
-            example = {"crop": image, "hand_mask": np.asarray(mask), "maps": np.asarray(maps[:, t])}
+            example = {"crop": image, "hand_mask": np.asarray(mask[t, 0]), "maps": np.asarray(maps[:, t])}
     if not frames:
         return {"share": None, "chance": None, "frames": 0}, example or {}
     return {"share": (share_sum / frames).tolist(), "chance": chance_sum / frames, "frames": frames}, example

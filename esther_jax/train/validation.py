@@ -155,6 +155,28 @@ def _conditioned(
     return clip, targets, motion_mask
 
 
+def _summarise(per_window: list, gates: list, count: int, *, intervals: bool, seed: int, resamples: int) -> dict:
+    """The batches' per-window Scores and GateScores (padding dropped) of `count` windows
+    -> the metrics dict of `score_predictions`."""
+    scores = jax.tree.map(lambda *x: np.concatenate(x), *per_window)
+    gate = jax.tree.map(lambda *x: np.concatenate(x), *gates)
+    result: dict = {}
+    spans: dict = {}
+    for name, score in scores.items():
+        mean = metrics.dataset_mean(jax.tree.map(jnp.asarray, score))
+        scale = 1000.0 if name.endswith("_mm") else 1.0
+        result[name] = float(mean.value) * scale if float(mean.count) > 0 else None
+        if intervals:
+            b = metrics.bootstrap(np.asarray(score.value) * scale, jax.random.key(seed), resamples, mask=np.asarray(score.count) > 0)
+            spans[name] = None if b is None else [b.ci_low, b.ci_high]
+    pooled = metrics.pooled_gate_scores(*(jnp.asarray(x) for x in (gate.true_positives, gate.false_positives, gate.false_negatives)))
+    result.update(onscreen_precision=float(pooled.precision), onscreen_recall=float(pooled.recall), onscreen_f1=float(pooled.f1))
+    out = {**{name: result[name] for name in VALIDATION_METRICS}, "windows": count}
+    if intervals:
+        out["intervals"] = spans
+    return out
+
+
 def score_predictions(
     joints: Float[Array, "N T 21 3"],
     emitted: Bool[Array, "N T"],
@@ -208,23 +230,7 @@ def score_predictions(
         n = min(batch, len(windows) - lo)
         per_window.append(jax.tree.map(lambda x: np.asarray(x)[:n], scores))
         gates.append(jax.tree.map(lambda x: np.asarray(x)[:n], gate))
-    scores = jax.tree.map(lambda *x: np.concatenate(x), *per_window)
-    gate = jax.tree.map(lambda *x: np.concatenate(x), *gates)
-    result: dict = {}
-    spans: dict = {}
-    for name, score in scores.items():
-        mean = metrics.dataset_mean(jax.tree.map(jnp.asarray, score))
-        scale = 1000.0 if name.endswith("_mm") else 1.0
-        result[name] = float(mean.value) * scale if float(mean.count) > 0 else None
-        if intervals:
-            b = metrics.bootstrap(np.asarray(score.value) * scale, jax.random.key(seed), resamples, mask=np.asarray(score.count) > 0)
-            spans[name] = None if b is None else [b.ci_low, b.ci_high]
-    pooled = metrics.pooled_gate_scores(*(jnp.asarray(x) for x in (gate.true_positives, gate.false_positives, gate.false_negatives)))
-    result.update(onscreen_precision=float(pooled.precision), onscreen_recall=float(pooled.recall), onscreen_f1=float(pooled.f1))
-    out = {**{name: result[name] for name in VALIDATION_METRICS}, "windows": len(windows)}
-    if intervals:
-        out["intervals"] = spans
-    return out
+    return _summarise(per_window, gates, len(windows), intervals=intervals, seed=seed, resamples=resamples)
 
 
 class Predictions(eqx.Module):
@@ -267,22 +273,31 @@ def predict_windows(
     - `corruption`: an appendix-K corruption (`eval.CORRUPTIONS`) of every crop (table 6;
       applied to the crops, not to the full frames).
     """
+    parts = []
+    for n, clip, targets, fps, (joints, emitted, keypoints_2d) in _predicted_batches(
+        net, windows, data_cfg, hand_model=hand_model, batch=batch, view_dropped=view_dropped, frames_dropped=frames_dropped,
+        blanked=blanked, corruption=corruption, seed=seed,
+    ):  # fmt: skip
+        onscreen = _onscreen_truth(clip, targets, data_cfg.crop_size)
+        parts.append(jax.tree.map(lambda x: x[:n], (joints, emitted, keypoints_2d, targets, onscreen, fps)))  # the padding dropped
+    return Predictions(*jax.tree.map(lambda *x: jnp.concatenate(x), *parts))
+
+
+def _predicted_batches(net, windows, data_cfg, *, hand_model, batch, view_dropped, frames_dropped, blanked, corruption, seed):
+    """Per batch of windows under the condition (`predict_windows`): the number of real
+    (unpadded) windows, the clips as the network sees them, their targets, their fps and
+    the network's (joints, emitted, keypoints_2d)."""
     _check_windows(windows, data_cfg, frames_dropped)
     if blanked is not None and blanked.shape != (data_cfg.frames,):
         raise ValueError(f"blanked must mark each of the {data_cfg.frames} frames of a window, got shape {blanked.shape}")
     hand_model = mano.load_builtin("right") if hand_model is None else hand_model
     fps_of = {w.clip: float(clip_format.read_meta(w.clip)["fps"]) for w in windows}
-    parts = []
     for lo in range(0, len(windows), batch):
         clip, targets, motion_mask = _conditioned(windows, data_cfg, lo, batch, view_dropped=view_dropped, frames_dropped=frames_dropped,
                                                   blanked=blanked, corruption=corruption, seed=seed)  # fmt: skip
-        n = min(batch, len(windows) - lo)
-        joints, emitted, keypoints_2d = _predict_windows(net, hand_model, clip, motion_mask)
-        onscreen = _onscreen_truth(clip, targets, data_cfg.crop_size)
-        parts.append(jax.tree.map(lambda x: x[:n], (joints, emitted, keypoints_2d, targets, onscreen)))  # the padding dropped
-    joints, emitted, keypoints_2d, targets, onscreen = jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
-    fps = jnp.asarray([fps_of[w.clip] for w in windows], joints.dtype)
-    return Predictions(joints, emitted, keypoints_2d, targets, onscreen, fps)
+        take = np.minimum(np.arange(lo, lo + batch), len(windows) - 1)  # padded as `_conditioned` pads
+        fps = jnp.asarray([fps_of[windows[i].clip] for i in take], clip.flow.dtype)
+        yield min(batch, len(windows) - lo), clip, targets, fps, _predict_windows(net, hand_model, clip, motion_mask)
 
 
 @eqx.filter_jit
@@ -307,12 +322,17 @@ def evaluate_windows(
     resamples: int = 2000,
 ) -> dict:
     """The validation metrics (module docstring) of `net` on `windows` under a condition
-    (`predict_windows`): what `score_predictions` returns for its predictions."""
-    pred = predict_windows(net, windows, data_cfg, hand_model=hand_model, batch=batch, view_dropped=view_dropped,
-                           frames_dropped=frames_dropped, blanked=blanked, corruption=corruption, seed=seed)  # fmt: skip
-    return score_predictions(pred.joints, pred.emitted, windows, data_cfg, keypoints_2d=pred.keypoints_2d, view_dropped=view_dropped,
-                             frames_dropped=frames_dropped, blanked=blanked, batch=batch, seed=seed, intervals=intervals,
-                             resamples=resamples)  # fmt: skip
+    (`predict_windows`): what `score_predictions` returns for its predictions, each batch
+    scored as it is predicted (every window loaded once)."""
+    per_window, gates = [], []
+    for n, clip, targets, fps, (joints, emitted, keypoints_2d) in _predicted_batches(
+        net, windows, data_cfg, hand_model=hand_model, batch=batch, view_dropped=view_dropped, frames_dropped=frames_dropped,
+        blanked=blanked, corruption=corruption, seed=seed,
+    ):  # fmt: skip
+        scores, gate = jax.device_get(score_windows(joints, emitted, keypoints_2d, clip, targets, fps, data_cfg.crop_size))
+        per_window.append(jax.tree.map(lambda x: np.asarray(x)[:n], scores))
+        gates.append(jax.tree.map(lambda x: np.asarray(x)[:n], gate))
+    return _summarise(per_window, gates, len(windows), intervals=intervals, seed=seed, resamples=resamples)
 
 
 __all__ = ["VALIDATION_METRICS", "Predictions", "drop_frames", "drop_view", "evaluate_windows", "predict_windows", "score_predictions", "score_windows"]
