@@ -5,6 +5,7 @@
       hands/<right|left>/keypoints.npz   uv [D,T,2,21,2], conf [D,T,2,21], box [D,T,2,4], box_score [D,T,2]
       hands/<side>/gt.npz                global_orient [T,3], hand_pose [T,15,3], betas [10], transl [T,3],
                                          joints [T,21,3], onscreen [T] (vertices [T,V,3] optional)
+      video/left.mp4, video/right.mp4    optional frames (RGB; grey rigs as grey)
       hands/<side>/monocular.npz         optional per-view monocular MANO (e.g. WiLoR) in each camera's
                                          frame: global_orient [T,2,3], hand_pose [T,2,15,3], transl [T,2,3]
                                          (wrist position), valid [T,2]; the teacher starts from it
@@ -19,7 +20,9 @@ import math
 import pathlib
 import zipfile
 import zlib
+from collections.abc import Iterable, Iterator
 
+import cv2
 import numpy as np
 
 from .files import atomic_output, read_json, write_json
@@ -161,3 +164,49 @@ def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:
     if (root / "hands").is_dir():
         return [root]
     return sorted(p for p in root.iterdir() if (p / "hands").is_dir())
+
+
+def iter_video(path: str | pathlib.Path) -> Iterator[np.ndarray]:
+    """The frames of a video file one at a time, RGB (H, W, 3) uint8 (grey videos come
+    out as three equal channels, as OpenCV decodes them)."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ClipFormatError(f"{path} does not exist")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise ClipFormatError(f"{path} cannot be opened as a video (unknown container or codec)")
+    try:
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            yield np.ascontiguousarray(frame[..., ::-1])
+    finally:
+        capture.release()
+
+
+def read_video(path: str | pathlib.Path) -> np.ndarray:
+    """(T, H, W, 3) RGB frames of a video (clear error when missing or unreadable)."""
+    frames = list(iter_video(path))
+    if not frames:
+        raise ClipFormatError(f"{path} holds no readable video frames (truncated or not a video)")
+    return np.stack(frames)
+
+
+def write_video(path: str | pathlib.Path, frames: Iterable[np.ndarray], fps: float) -> pathlib.Path:
+    """Write RGB (H, W, 3) or grey (H, W) uint8 frames (an array or any iterable, written as
+    they come) as an mp4 (mp4v), atomically."""
+    path = pathlib.Path(path)
+    writer = None
+    with atomic_output(path) as tmp:
+        for frame in frames:
+            if writer is None:
+                h, w = frame.shape[:2]
+                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h), isColor=frame.ndim == 3)
+                if not writer.isOpened():
+                    raise RuntimeError(f"OpenCV cannot write {path} (no mp4v encoder in this OpenCV build)")
+            writer.write(np.ascontiguousarray(frame[..., ::-1]) if frame.ndim == 3 else frame)  # RGB -> BGR
+        if writer is None:
+            raise ValueError(f"no frames to write to {path}")
+        writer.release()
+    return path

@@ -99,6 +99,13 @@ def _box_outline(box: Float[Array, "4"], samples: int = 8) -> Float[Array, "n 2"
     return jnp.concatenate([top, bottom, left, right])
 
 
+def wide_pinhole(camera: AbstractCamera, focal: float) -> PinholeCamera:
+    """The axis-aligned wide pinhole the whole image of `camera` is undistorted to by the
+    offbb strategies (appendix M): virtual focal `focal` px, principal point at the image
+    centre, the same image size; its frame is the camera's (no rotation)."""
+    return PinholeCamera(focal, focal, (camera.width - 1) / 2, (camera.height - 1) / 2, camera.width, camera.height)
+
+
 def rectified_crop(
     camera: AbstractCamera,
     box: Float[Array, "4"],
@@ -121,8 +128,7 @@ def rectified_crop(
     # mirrored rays that would blow the box up: leave them out (unless all are).
     keep = (outline_ok | ~jnp.any(outline_ok))[:, None]
     if strategy.startswith("offbb"):
-        focal = float(strategy[len("offbb"):])
-        wide = PinholeCamera(focal, focal, (camera.width - 1) / 2, (camera.height - 1) / 2, camera.width, camera.height)
+        wide = wide_pinhole(camera, float(strategy[len("offbb"):]))
         projected = wide.project(outline)
         wide_box = jnp.concatenate([jnp.where(keep, projected, jnp.inf).min(axis=0), jnp.where(keep, projected, -jnp.inf).max(axis=0)])
         return crop_camera(wide, wide_box, size, padding)

@@ -262,7 +262,6 @@ def review_clip(clip_dir: str | pathlib.Path, out_dir: str | pathlib.Path) -> li
     """Write `<out>/<clip>/hands/<side>/review.png` for the flagged frames of each hand."""
     import jax.numpy as jnp
 
-    from esther_jax.data.synth import read_video
 
     from .fusion import fuse
     from .review import review_sheet
@@ -271,7 +270,7 @@ def review_clip(clip_dir: str | pathlib.Path, out_dir: str | pathlib.Path) -> li
     rig = StereoRig.from_json(clip_dir / "rig.json")
     videos = None
     if (clip_dir / "video" / "left.mp4").is_file():
-        videos = {view: read_video(clip_dir / "video" / f"{view}.mp4") for view in ("left", "right")}
+        videos = {view: clips.read_video(clip_dir / "video" / f"{view}.mp4") for view in ("left", "right")}
     sheets = []
     for side in clips.SIDES:
         path = clips.hand_file(out_dir / clip_dir.name, side, "labels")

@@ -262,37 +262,8 @@ def _write_clip_files(clip: Clip, tmp: pathlib.Path) -> None:
         if side in clip.crops:
             clips.save_npz(tmp / "crops" / f"{side}.npz", **clip.crops[side])
     for view, frames in clip.videos.items():
-        _write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
+        clips.write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
     clips.write_meta(tmp, **clip.meta)
-
-
-def _write_video(path: pathlib.Path, frames: np.ndarray, fps: float) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    h, w = frames.shape[1:3]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h), isColor=frames.ndim == 4)
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write {path} (no mp4v encoder in this OpenCV build)")
-    for frame in frames:
-        writer.write(frame[..., ::-1] if frame.ndim == 3 else frame)  # RGB -> BGR
-    writer.release()
-
-
-def read_video(path: str | pathlib.Path) -> np.ndarray:
-    """(T, H, W, 3) RGB frames of an mp4 (clear error when missing or unreadable)."""
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise clips.ClipFormatError(f"{path} does not exist")
-    capture = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            break
-        frames.append(frame[..., ::-1])
-    capture.release()
-    if not frames:
-        raise clips.ClipFormatError(f"{path} holds no readable video frames (truncated or not an mp4)")
-    return np.stack(frames)
 
 
 def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
@@ -322,7 +293,7 @@ def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
         raise clips.ClipFormatError(f"{folder} has no hands/<side>/keypoints.npz")
     clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt, crops=crop_data)
     if videos:
-        clip.videos = {view: read_video(folder / "video" / f"{view}.mp4") for view in ("left", "right")}
+        clip.videos = {view: clips.read_video(folder / "video" / f"{view}.mp4") for view in ("left", "right")}
     return clip
 
 
