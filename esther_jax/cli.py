@@ -26,6 +26,10 @@ def main(argv: list[str] | None = None) -> int:
         "the hands whose recorded models match and says which it did not; 'require' fails unless all match; "
         "'skip' scores joints only. Joints are always scored",
     )  # fmt: skip
+    evaluate.add_argument("--preset", default="esther", choices=["esther", "hot3d"],
+                          help="esther: our tables (P-MPJPE, PA-MPJPE, wrist, jitter, ...); hot3d: HOT3D's official pose metrics "
+                               "(19 landmarks, absolute MPJPE, PCK-AUC, every 10th frame, frame-weighted, ground-truth shape substituted)")  # fmt: skip
+    evaluate.add_argument("--mano", metavar="DIR", help="with --preset hot3d: your MANO files, when the labels are parameters of them")
     synth = commands.add_parser("synth", help="make synthetic egocentric stereo clips with exact ground truth")
     synth.add_argument("--out", required=True, help="output folder (clip_00000, clip_00001, ...)")
     synth.add_argument("--clips", type=int, default=10, help="number of clips (an interrupted run resumes)")
@@ -51,6 +55,22 @@ def main(argv: list[str] | None = None) -> int:
         "(held-out sets past the training range, e.g. --depth-range 0.1 1.1). Default egocentric",
     )  # fmt: skip
     synth.add_argument("--seed", type=int, default=0)
+    detect = commands.add_parser("detect", help="stereo videos (or image folders) + rig.json -> a clip folder with 2D keypoints")
+    detect.add_argument("--left", required=True, help="the left view: a video file or a folder of images (sorted by name)")
+    detect.add_argument("--right", required=True, help="the right view, same number of frames")
+    detect.add_argument("--rig", required=True, help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
+    detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it)")
+    detect.add_argument("--detector", action="append", metavar="NAME",
+                        help="mediapipe (default; the detect extra) or onnx:MODEL.onnx (a YOLO-pose hand model you own); "
+                             "repeat for several detectors (the D axis of keypoints.npz)")  # fmt: skip
+    detect.add_argument("--fps", type=float, help="frame rate (read from the videos when omitted; needed for image folders)")
+    detect.add_argument("--rectify", default="offbb120", choices=["offbb120", "offbb90", "offbb150"],
+                        help="fisheye views are undistorted to this wide pinhole for detection (appendix M), keypoints mapped back")  # fmt: skip
+    detect.add_argument("--videos", default="link", choices=["link", "copy", "encode"], help="how the clip's video/*.mp4 are made (image folders: encoded)")
+    importer = commands.add_parser("import-hot3d", help="HOT3D sequences or HOT3D-Clips tars -> clip folders (calibration, head motion, boxes, MANO ground truth)")
+    importer.add_argument("sources", nargs="+", help="per-sequence export folders (metadata.json, mano_hand_pose_trajectory.jsonl, ...) or clip tars")
+    importer.add_argument("--out", required=True, help="output folder (one clip folder per source)")
+    importer.add_argument("--mano", metavar="DIR", help="your MANO_RIGHT.pkl and MANO_LEFT.pkl: needed for gt.npz (HOT3D's ground truth is MANO)")
     label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
     label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
     label.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz, quality.json)")
@@ -109,6 +129,10 @@ def main(argv: list[str] | None = None) -> int:
         run(args.out, seed=args.seed, frames=args.frames)
     elif args.command == "label":
         return _label(args)
+    elif args.command == "detect":
+        return _detect(args)
+    elif args.command == "import-hot3d":
+        return _import_hot3d(args)
     elif args.command == "synth":
         from .data.motion import MotionConfig
         from .data.synth import SynthConfig, synthesize
@@ -133,6 +157,17 @@ def main(argv: list[str] | None = None) -> int:
         return _train(args)
     elif args.command == "predict":
         return _predict(args)
+    elif args.command == "evaluate" and args.preset == "hot3d":
+        from .eval import evaluate_hot3d_folders
+
+        try:
+            models = _mano_models(args.mano)[0] if args.mano else None
+            result = evaluate_hot3d_folders(args.pred, args.gt, args.out, models)
+        except (OSError, ValueError) as err:
+            print(f"esther evaluate: {err}", file=sys.stderr)
+            return 2
+        print((pathlib.Path(args.out) / "table.md").read_text())
+        print(f"{len(result['per_sequence'])} hands, {len(result['missing'])} not labelled; wrote {pathlib.Path(args.out).resolve()}")
     elif args.command == "evaluate":
         from .eval import evaluate_folders
 
@@ -186,6 +221,42 @@ def _label(args) -> int:
     )
     write_json(pathlib.Path(args.out) / "label_summary.json", result)
     return 1 if result["failed"] else 0
+
+
+def _detect(args) -> int:
+    from .clips import ClipFormatError
+    from .detect import DetectorUnavailable, detect_clip
+
+    try:
+        report = detect_clip(args.left, args.right, args.rig, args.out, detectors=tuple(args.detector or ["mediapipe"]), fps=args.fps,
+                             strategy=args.rectify, videos=args.videos)  # fmt: skip
+    except (DetectorUnavailable, ClipFormatError, OSError, ValueError, RuntimeError) as err:
+        print(f"esther detect: {err}", file=sys.stderr)
+        return 2
+    for name, frames in report["frames_with_hands"].items():
+        tracks = report["handedness"][name]["tracks"]
+        dropped = sum(t["side"] == "dropped" for t in tracks)
+        print(f"{name}: hands in {frames} frames; {len(tracks)} tracks" + (f" ({dropped} dropped: a side already taken)" if dropped else ""))
+    print(f"sides: {', '.join(report['sides']) or 'none'} -> {pathlib.Path(args.out).resolve()} (next: esther label {args.out} --out LABELS)")
+    return 0
+
+
+def _import_hot3d(args) -> int:
+    from .clips import ClipFormatError
+    from .data.hot3d import import_hot3d
+    from .mano import ManoFileError
+
+    try:
+        models, sources = _mano_models(args.mano) if args.mano else (None, None)
+        reports = import_hot3d(args.sources, args.out, models, sources)
+    except (ClipFormatError, ManoFileError, OSError, ValueError) as err:
+        print(f"esther import-hot3d: {err}", file=sys.stderr)
+        return 2
+    for report in reports:
+        print(f"{report['source']} -> {report['clip']}: {len(report['timestamps_ns'])} frames; wrote {', '.join(report['written'])}")
+        for missing in report["not_written"]:
+            print(f"  not written: {missing['file']} ({missing['why']})")
+    return 0
 
 
 def _clip_folders(paths: list[str], command: str) -> list[pathlib.Path] | None:

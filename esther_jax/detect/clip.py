@@ -4,7 +4,8 @@
                                             out/hands/<side>/keypoints.npz  (D = one per detector),
                                             out/video/left.mp4, right.mp4    (linked, copied or encoded)
 
-Then `esther label out` works unchanged. Per detector, every frame of both views is
+Then `esther label out` works unchanged. Into an existing clip folder (an imported HOT3D
+clip, say), the keypoints and the detection record are added and the rest is kept. Per detector, every frame of both views is
 detected (one detector instance per view: trackers keep state); fisheye views are first
 undistorted to the axis-aligned wide pinhole of the offbb strategies (appendix F / M:
 detectors are trained on perspective images), and the keypoints and boxes are mapped
@@ -280,8 +281,11 @@ def detect_clip(
             "frames_with_hands": {name: int(np.sum(c.score.max(axis=(1, 2)) > 0)) for name, c in zip(detectors, results)},
             "handedness": {name: r for name, (_, r) in zip(detectors, assigned)},
         }
-        clips.write_meta(out, fps=float(fps), num_frames=int(T), source={"left": str(sources[0].path), "right": str(sources[1].path)},
-                         detect=report)  # fmt: skip
+        previous = clips.read_meta(out) if (out / "meta.json").is_file() else {}  # e.g. an imported HOT3D clip's record
+        if previous and previous["num_frames"] != T:
+            raise clips.ClipFormatError(f"{out} holds a clip of {previous['num_frames']} frames; the videos have {T}")
+        clips.write_meta(out, **{**previous, "fps": float(fps), "num_frames": int(T), "detect": report,
+                                 "frames": {"left": str(sources[0].path), "right": str(sources[1].path)}})  # fmt: skip
         shutil.rmtree(out / ".detect", ignore_errors=True)
     return report
 
@@ -290,6 +294,8 @@ def _write_videos(sources: tuple[FrameSource, FrameSource], out: pathlib.Path, f
     for view, source in zip(("left", "right"), sources):
         target = out / "video" / f"{view}.mp4"
         target.parent.mkdir(parents=True, exist_ok=True)
+        if target.exists() and target.resolve() == source.path.resolve():
+            continue  # detecting the clip's own videos
         if source.is_video and source.path.suffix.lower() == ".mp4" and mode in ("link", "copy"):
             tmp = target.with_name(f".{view}.partial.mp4")
             tmp.unlink(missing_ok=True)

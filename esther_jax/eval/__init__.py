@@ -1,6 +1,7 @@
 """Evaluation: robustness protocols, the HOT3D-compatible preset, reports, label-folder evaluation."""
 
 from .folders import evaluate_folders as evaluate_folders
+from .hot3d import evaluate_hot3d_folders as evaluate_hot3d_folders
 from .hot3d import hot3d_dataset_metrics as hot3d_dataset_metrics
 from .hot3d import hot3d_sequence_metrics as hot3d_sequence_metrics
 from .protocols import CORRUPTIONS as CORRUPTIONS

@@ -19,6 +19,9 @@ Our 21 keypoints (MediaPipe order) map onto those 20 landmarks by
 `HOT3D_LANDMARKS_FROM_KEYPOINTS` (our keypoint 1, the thumb CMC, is unused).
 """
 
+import pathlib
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -80,3 +83,60 @@ def hot3d_dataset_metrics(per_sequence: list[dict[str, float]]) -> dict[str, flo
         out[key] = float(np.sum(values * weights) / weights.sum())
     out["num_frames"] = int(weights.sum())
     return out
+
+
+def evaluate_hot3d_folders(
+    pred_root: str | pathlib.Path, gt_root: str | pathlib.Path, out_dir: str | pathlib.Path, models: dict | None = None
+) -> dict:
+    """The HOT3D preset over label folders: every (clip, hand) of `gt_root` with a `gt.npz`
+    that `pred_root` labels, scored with `hot3d_sequence_metrics` on the frames the
+    prediction emits (`valid`), the ground-truth shape substituted before FK (the model
+    the labels are parameters of: the built-in hand, or one of `models`, the user's MANO
+    files); sequences averaged frame-weighted. Writes `metrics.json` and `table.md`."""
+    from .. import clips, mano
+    from ..files import check_out_dir, write_json
+    from .folders import _recorded_model
+
+    out_dir = check_out_dir(out_dir)
+    candidates = [mano.load_builtin(side) for side in clips.SIDES] + list((models or {}).values())
+    by_id = {(m.side, mano.model_id(m)): m for m in candidates}
+    fk = jax.jit(jax.vmap(lambda model, p: mano.forward(model, p, check_finite=False).joints, in_axes=(None, 0)))
+    per_sequence, missing = [], []
+    for clip in clips.list_clips(gt_root):
+        for side in clips.SIDES:
+            gt_path = clips.hand_file(clip, side, "gt")
+            if not gt_path.is_file():
+                continue
+            pred_dir = pathlib.Path(pred_root) / clip.name
+            pred_path = clips.hand_file(pred_dir, side, "labels")
+            if not pred_path.is_file():
+                missing.append(f"{clip.name}/{side}")
+                continue
+            record = _recorded_model(pred_dir, side)
+            if record is None:
+                raise ValueError(f"{pred_dir}: the labels record no MANO model, so the ground-truth shape cannot be substituted")
+            model = by_id.get((side, record["id"]))
+            if model is None:
+                raise ValueError(
+                    f"{pred_dir.name}/{side}: the labels are parameters of MANO model {record['id']} ({record.get('source', '?')}); "
+                    "give those files with --mano DIR"
+                )
+            gt, pred = clips.load_npz(gt_path, "gt"), clips.load_npz(pred_path, "labels")
+            if len(pred["valid"]) != len(gt["onscreen"]):
+                raise ValueError(f"{clip.name}/{side}: {len(pred['valid'])} predicted frames, {len(gt['onscreen'])} in the ground truth")
+            T = len(pred["valid"])
+            params = mano.ManoParams(jnp.asarray(pred["global_orient"]), jnp.asarray(pred["hand_pose"]),
+                                     jnp.broadcast_to(jnp.asarray(gt["betas"]), (T, 10)), jnp.asarray(pred["transl"]))  # fmt: skip
+            joints = np.asarray(fk(model, params))
+            scores = hot3d_sequence_metrics(joints, gt["joints"], pred["valid"])
+            per_sequence.append({"hand": f"{clip.name}/{side}", **scores})
+    if not per_sequence:
+        raise ValueError(f"no hand of {gt_root} with gt.npz is labelled in {pred_root}")
+    result = {"preset": "hot3d", "dataset": hot3d_dataset_metrics(per_sequence), "per_sequence": per_sequence, "missing": missing,
+              "frame_stride": FRAME_STRIDE, "landmarks": "19 (HOT3D canonical without the wrist), absolute, millimetres"}  # fmt: skip
+    write_json(out_dir / "metrics.json", result)
+    d = result["dataset"]
+    lines = ["| preset | MPJPE (mm) | PCK-AUC | fingertip PCK-AUC | frames |", "|---|---|---|---|---|",
+             f"| hot3d | {d['mpjpe_mm']:.1f} | {d['pck_auc']:.1f} | {d['fingertip_pck_auc']:.1f} | {d['num_frames']} |"]  # fmt: skip
+    (out_dir / "table.md").write_text("\n".join(lines) + "\n")
+    return result
