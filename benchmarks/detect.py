@@ -1,0 +1,156 @@
+"""The real detector on pixels with exact ground truth (issue 15, point 3), side by side
+with the simulated detector.
+
+    python benchmarks/detect.py [--clips 3] [--frames 16] [--rig esther] [--out DIR]
+
+1. Real-photo control: MediaPipe on the real `hands.jpg` of ../shared/data (when present):
+   hands found and the worst keypoint error against the published expected outputs.
+2. Hand-centred crops: for every on-screen, in-view hand of N rendered synthetic clips
+   (`esther synth --render`), a 224 px crop around its projected ground-truth keypoints
+   (padding 1.25) of the rendered frame, run through MediaPipe (image mode). Detection
+   rate, and the median over detected hands of the median 2D keypoint error (crop px)
+   against the projected ground truth. Target: >= 80 % detected, median error <= 8 px.
+3. Full frames end to end: `detect_clip` (MediaPipe, video mode) on each clip's rendered
+   videos, then the teacher; coverage (labelled over on-screen hand-frames), P-MPJPE and
+   wrist error (mm) against the ground truth, next to the teacher on the simulated
+   detector's keypoints of the same clips.
+
+Everything runs on the CPU, one process; the synthetic clips are made in `--out`
+(default: a temporary folder).
+"""
+
+import argparse
+import json
+import pathlib
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from esther_jax import clips, crops, metrics
+from esther_jax.cameras import StereoRig
+from esther_jax.data import SynthConfig, synthesize
+from esther_jax.detect import MediaPipeHands, detect_clip
+from fitting import label_clips
+
+ORACLE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mediapipe_oracle"
+CROP = 224
+
+
+def real_photo_control() -> dict | None:
+    if not ORACLE.is_dir():
+        return None
+    import cv2
+
+    expected = np.asarray(json.loads((ORACLE / "mediapipe_tasks_outputs.json").read_text())["tfjs_expected_hands_jpg"]["keypoints_px"])
+    with MediaPipeHands(video=False) as detector:
+        hands = detector.detect(cv2.imread(str(ORACLE / "hands.jpg"))[..., ::-1])
+    worst = max(min(np.abs(h.uv + 0.5 - e).max() for h in hands) for e in expected) if hands else float("nan")
+    return {"hands_found": len(hands), "hands_expected": len(expected), "worst_keypoint_error_px": float(worst)}
+
+
+def crop_detection(clip_dirs: list[pathlib.Path]) -> dict:
+    found, total, errors = 0, 0, []
+    with MediaPipeHands(video=False) as detector:
+        for clip in clip_dirs:
+            rig = StereoRig.from_json(clip / "rig.json")
+            videos = [clips.read_video(clip / "video" / f"{v}.mp4") for v in ("left", "right")]
+            for side in clips.SIDES:
+                path = clips.hand_file(clip, side, "gt")
+                if not path.is_file():
+                    continue
+                gt = clips.load_npz(path, "gt")
+                uv = np.asarray(rig.project(jnp.asarray(gt["joints"])))  # (2, T, 21, 2)
+                visible = np.asarray(rig.is_visible(jnp.asarray(gt["joints"])))  # (2, T, 21)
+                for view in (0, 1):
+                    for t in np.flatnonzero(gt["onscreen"] & (visible[view].mean(axis=-1) >= 0.5)):
+                        box = np.concatenate([uv[view, t].min(axis=0), uv[view, t].max(axis=0)])
+                        M = crops.crop_affine(jnp.asarray(box), CROP)
+                        image = crops.warp_crop(videos[view][t], box, CROP)
+                        truth = uv[view, t] @ M[:, :2].T + M[:, 2]
+                        hands = detector.detect(image)
+                        total += 1
+                        if hands:
+                            found += 1
+                            errors.append(min(np.median(np.linalg.norm(h.uv - truth, axis=-1)) for h in hands))
+    return {"hand_crops": total, "detected": found, "detection_rate": found / max(total, 1),
+            "median_error_px": float(np.median(errors)) if errors else None}  # fmt: skip
+
+
+def _label_scores(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path) -> dict:
+    p, w, labelled, onscreen = [], [], 0, 0
+    for clip in clip_dirs:
+        for side in clips.SIDES:
+            gt_path = clips.hand_file(clip, side, "gt")
+            if not gt_path.is_file():
+                continue
+            gt = clips.load_npz(gt_path, "gt")
+            onscreen += int(gt["onscreen"].sum())
+            path = clips.hand_file(labels_root / clip.name, side, "labels")
+            if not path.is_file():
+                continue
+            labels = clips.load_npz(path, "labels")
+            ok = labels["valid"] & gt["onscreen"]
+            labelled += int(ok.sum())
+            if ok.any():
+                pred, true = jnp.asarray(labels["joints"][ok]), jnp.asarray(gt["joints"][ok])
+                p += list(np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true)) * 1000)
+                w += list(np.asarray(jax.vmap(metrics.wrist_error)(pred, true)) * 1000)
+    return {"coverage": labelled / max(onscreen, 1), "p_mpjpe_mm": float(np.mean(p)) if p else None,
+            "wrist_mm": float(np.mean(w)) if w else None, "hand_frames": labelled}  # fmt: skip
+
+
+def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path) -> dict:
+    detected = []
+    frames_with_hands = 0
+    for clip in clip_dirs:
+        out = work / "detected" / clip.name
+        report = detect_clip(clip / "video" / "left.mp4", clip / "video" / "right.mp4", clip / "rig.json", out, progress=False)
+        frames_with_hands += report["frames_with_hands"]["mediapipe"]
+        detected.append(out)
+    rows = {"mediapipe_frames_with_hands": frames_with_hands}
+    with_keypoints = [c for c in detected if any(clips.hand_file(c, s, "keypoints").is_file() for s in clips.SIDES)]
+    if with_keypoints:
+        label_clips(with_keypoints, work / "labels_mediapipe")
+        rows["mediapipe"] = _label_scores(clip_dirs, work / "labels_mediapipe")
+    else:
+        rows["mediapipe"] = {"coverage": 0.0, "p_mpjpe_mm": None, "wrist_mm": None, "hand_frames": 0}
+    label_clips(clip_dirs, work / "labels_simulated")
+    rows["simulated"] = _label_scores(clip_dirs, work / "labels_simulated")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clips", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=16)
+    parser.add_argument("--rig", default="esther")
+    parser.add_argument("--out", help="work folder (default: temporary)")
+    args = parser.parse_args()
+    work = pathlib.Path(args.out) if args.out else pathlib.Path(tempfile.mkdtemp(prefix="esther_detect_bench_"))
+    start = time.perf_counter()
+    synthesize(work / "clips", args.clips, SynthConfig(num_frames=args.frames, rig=args.rig, render=True), seed=15, progress=False)
+    clip_dirs = clips.list_clips(work / "clips")
+    print(f"made {len(clip_dirs)} rendered clips ({args.rig}, {args.frames} frames) in {time.perf_counter() - start:.0f} s")
+    control = real_photo_control()
+    if control:
+        print(f"real photo (hands.jpg): {control['hands_found']}/{control['hands_expected']} hands, worst keypoint error "
+              f"{control['worst_keypoint_error_px']:.1f} px (reference tolerance 20 px)")  # fmt: skip
+    crop = crop_detection(clip_dirs)
+    shown = f"{crop['median_error_px']:.1f} px" if crop["median_error_px"] is not None else "n/a"
+    print(f"hand-centred {CROP} px crops of renders: {crop['detected']}/{crop['hand_crops']} detected "
+          f"({crop['detection_rate']:.0%}; target >= 80 %), median 2D error {shown} (target <= 8 px)")  # fmt: skip
+    rows = end_to_end(clip_dirs, work)
+    print(f"full frames, MediaPipe video mode: hands in {rows['mediapipe_frames_with_hands']} frames")
+    print("| keypoints | coverage | P-MPJPE (mm) | wrist (mm) |\n|---|---|---|---|")
+    for name in ("mediapipe", "simulated"):
+        r = rows[name]
+        fmt = lambda v: f"{v:.1f}" if v is not None else "n/a"  # noqa: E731
+        print(f"| {name} | {r['coverage']:.0%} | {fmt(r['p_mpjpe_mm'])} | {fmt(r['wrist_mm'])} |")
+    print(f"total {time.perf_counter() - start:.0f} s; work folder {work}")
+
+
+if __name__ == "__main__":
+    main()
