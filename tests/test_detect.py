@@ -12,6 +12,7 @@ import json
 import pathlib
 
 import cv2
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -56,7 +57,7 @@ class GroundTruthDetector:
         t = int(round(timestamp_s * 30))
         hands = []
         for side, joints in self.joints.items():
-            uv = np.asarray(self.camera.project(np.asarray(self.rig.to_views(joints[t]))[self.view]), np.float64)
+            uv = np.asarray(self.camera.project(self.rig.to_views(jnp.asarray(joints[t]))[self.view]), np.float64)
             conf = np.ones(21)
             hands.append(HandDetection(uv, conf, keypoint_box(uv, conf), 0.9, label=-1 if side == "right" else 1, label_score=0.9))
         return hands
@@ -100,7 +101,7 @@ def test_assign_hands_uses_geometry_over_wrong_labels(two_hands):
     hands, report = assign_hands(c, rig)
     assert set(hands) == {"right", "left"}
     for side in hands:
-        expected = np.asarray(rig.project(two_hands[side]))  # (2, T, 21, 2)
+        expected = np.asarray(rig.project(jnp.asarray(two_hands[side])))  # (2, T, 21, 2)
         np.testing.assert_allclose(hands[side]["uv"], expected.transpose(1, 0, 2, 3), atol=1e-6)
     assert report["stereo_pairing"] and all(t["stereo_observations"] == FRAMES for t in report["tracks"])
     assert {t["evidence_side"] for t in report["tracks"]} == {"right", "left"}
@@ -120,8 +121,8 @@ def test_detect_clip_writes_a_clip_the_teacher_reads(tmp_path, two_hands, rig_na
     for side in ("right", "left"):
         kp = clips.load_npz(clips.hand_file(clip, side, "keypoints"), "keypoints")
         assert kp["uv"].shape == (1, FRAMES, 2, 21, 2)
-        expected = np.asarray(rig.project(two_hands[side])).transpose(1, 0, 2, 3)
-        visible = np.asarray(rig.is_visible(two_hands[side])).transpose(1, 0, 2)
+        expected = np.asarray(rig.project(jnp.asarray(two_hands[side]))).transpose(1, 0, 2, 3)
+        visible = np.asarray(rig.is_visible(jnp.asarray(two_hands[side]))).transpose(1, 0, 2)
         np.testing.assert_allclose(kp["uv"][0][visible], expected[visible], atol=2e-3)  # mapped back exactly (float32 file)
         assert np.all(kp["conf"][0][~visible] == 0)
     assert (clip / "video" / "left.mp4").is_file() and clips.read_video(clip / "video" / "left.mp4").shape[0] == FRAMES

@@ -13,7 +13,7 @@ and `close()` plugs into `detect_clip` (one instance per view, as trackers keep 
 """
 
 import dataclasses
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -50,6 +50,7 @@ class HandDetection:
         object.__setattr__(self, "box", box)
 
 
+@runtime_checkable
 class KeypointDetector(Protocol):
     """A 2D hand keypoint detector. One instance per video stream (trackers keep state
     between calls; timestamps must increase)."""

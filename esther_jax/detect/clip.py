@@ -31,7 +31,7 @@ from tqdm import tqdm
 from .. import clips
 from ..cameras import AbstractCamera, PinholeCamera, StereoRig
 from ..crops import RECTIFICATION_STRATEGIES, Crop, rectification_map, wide_pinhole
-from ..files import check_out_dir, exclusive_lock, write_json
+from ..files import check_out_dir, exclusive_lock
 from .base import Candidates, HandDetection, KeypointDetector
 from .handedness import assign_hands
 

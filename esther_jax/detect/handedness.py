@@ -84,7 +84,7 @@ class _Track:
 
 
 def _diagonal(box: np.ndarray) -> np.ndarray:
-    return np.maximum(np.hypot(box[..., 2] - box[..., 0], box[..., 3] - box[..., 1]), 1.0)
+    return np.asarray(np.maximum(np.hypot(box[..., 2] - box[..., 0], box[..., 3] - box[..., 1]), 1.0))
 
 
 def _stereo_pairs(c: Candidates, rig: StereoRig, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +131,7 @@ def assign_hands(
             rows, cols = linear_sum_assignment(np.where(np.isfinite(cost[t]), cost[t], 1e9))
             for i, j in zip(rows, cols):
                 if np.isfinite(cost[t, i, j]):
-                    here.append(_Observation(t, {0: i, 1: j}, STEREO_WEIGHT * float(np.clip(stereo_chirality[t, i, j], -1, 1)), True))
+                    here.append(_Observation(t, {0: int(i), 1: int(j)}, STEREO_WEIGHT * float(np.clip(stereo_chirality[t, i, j], -1, 1)), True))
                     used |= {(0, i), (1, j)}
         for v in range(V):
             for k in range(H):

@@ -128,11 +128,12 @@ def evaluate_hot3d_folders(
             params = mano.ManoParams(jnp.asarray(pred["global_orient"]), jnp.asarray(pred["hand_pose"]),
                                      jnp.broadcast_to(jnp.asarray(gt["betas"]), (T, 10)), jnp.asarray(pred["transl"]))  # fmt: skip
             joints = np.asarray(fk(model, params))
-            scores = hot3d_sequence_metrics(joints, gt["joints"], pred["valid"])
+            scores = hot3d_sequence_metrics(jnp.asarray(joints), jnp.asarray(gt["joints"]), jnp.asarray(pred["valid"]))
             per_sequence.append({"hand": f"{clip.name}/{side}", **scores})
     if not per_sequence:
         raise ValueError(f"no hand of {gt_root} with gt.npz is labelled in {pred_root}")
-    result = {"preset": "hot3d", "dataset": hot3d_dataset_metrics(per_sequence), "per_sequence": per_sequence, "missing": missing,
+    scores_only = [{k: v for k, v in s.items() if k != "hand"} for s in per_sequence]
+    result = {"preset": "hot3d", "dataset": hot3d_dataset_metrics(scores_only), "per_sequence": per_sequence, "missing": missing,
               "frame_stride": FRAME_STRIDE, "landmarks": "19 (HOT3D canonical without the wrist), absolute, millimetres"}  # fmt: skip
     write_json(out_dir / "metrics.json", result)
     d = result["dataset"]
