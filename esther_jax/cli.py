@@ -171,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "evaluate":
         from .eval import evaluate_folders
 
+        if args.mano:
+            print("esther evaluate: --mano is for --preset hot3d (our preset compares the labels' own joints)", file=sys.stderr)
+            return 2
+
         try:
             result = evaluate_folders(args.pred, args.gt, args.out, method=args.method, seed=args.seed, parameters=args.params)
         except ValueError as err:  # bad folders or files, models that differ with --params require: say what
