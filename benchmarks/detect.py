@@ -3,8 +3,9 @@ with the simulated detector.
 
     python benchmarks/detect.py [--clips 3] [--frames 16] [--rig esther] [--out DIR]
 
-1. Real-photo control: MediaPipe on the real `hands.jpg` of ../shared/data (when present):
-   hands found and the worst keypoint error against the published expected outputs.
+1. Real-photo control (optional: skipped unless the MediaPipe reference photos with their
+   published expected keypoints, tensorflow/tfjs-models' hand-pose-detection test data, sit
+   in ORACLE): hands found in `hands.jpg` and the worst keypoint error against the reference.
 2. Hand-centred crops: for every on-screen, in-view hand of N rendered synthetic clips
    (`esther synth --render`), a 224 px crop around its projected ground-truth keypoints
    (padding 1.25) of the rendered frame, run through MediaPipe (image mode). Detection

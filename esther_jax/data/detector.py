@@ -2,8 +2,9 @@
 
 Two detectors with different error models stand in for the paper's YOLO11-pose and
 ViTPose ensemble. What we assume, and why (from how such detectors behave on
-egocentric video; see also the MediaPipe oracle in shared/data, whose errors on real
-hand photos are a few pixels median and ~15-20 px worst case on 700 px images):
+egocentric video, and from the real detector `esther_jax.detect.MediaPipeHands`, whose
+errors on real hand photos are a few pixels median and ~15-20 px worst case on 700 px
+images; see README, "Your own data"):
 
 - *Pixel noise scales with the apparent hand size* (keypoint heatmaps live on a crop
   resized to a fixed size): sigma = `noise` x the hand's 2D bounding-box diagonal for a
