@@ -353,6 +353,16 @@ def apply_transform(T: Float[Array, "*#batch 4 4"], X: Float[Array, "*#batch 3"]
     return apply3(R_a_b, jnp.broadcast_to(X, batch + (3,))) + t_a_b
 
 
+def invert_transform(T: Float[Array, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
+    """The exact rigid inverse `[R^T, -R^T t]` of rigid transform(s) `T_a_b`: `T_b_a` (no
+    general matrix inverse, so a rotation stays a rotation)."""
+    R_b_a = jnp.swapaxes(T[..., :3, :3], -1, -2)
+    t_b_a = -apply3(R_b_a, T[..., :3, 3])
+    top = jnp.concatenate([R_b_a, t_b_a[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.eye(4, dtype=T.dtype)[3:], top.shape[:-2] + (1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
 class StereoRig(eqx.Module):
     """Two calibrated cameras; the rig frame is the left camera's frame.
 
@@ -381,14 +391,8 @@ class StereoRig(eqx.Module):
     def T_right_left(self) -> Float[Array, "4 4"]:
         """Pose of the left (rig) frame in the right camera's: `X_right = T_right_left @ X_left`.
 
-        The exact rigid inverse `[R^T, -R^T t]` of `T_left_right` (no general matrix inverse)."""
-        R_left_right = self.T_left_right[..., :3, :3]
-        t_left_right = self.T_left_right[..., :3, 3]
-        R_right_left = jnp.swapaxes(R_left_right, -1, -2)
-        t_right_left = -apply3(R_right_left, t_left_right)
-        top = jnp.concatenate([R_right_left, t_right_left[..., None]], axis=-1)
-        bottom = jnp.broadcast_to(jnp.eye(4, dtype=self.T_left_right.dtype)[3:], top.shape[:-2] + (1, 4))
-        return jnp.concatenate([top, bottom], axis=-2)
+        The exact rigid inverse of `T_left_right` (`invert_transform`)."""
+        return invert_transform(self.T_left_right)
 
     @property
     def T_cams_rig(self) -> Float[Array, "2 4 4"]:

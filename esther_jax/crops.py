@@ -89,7 +89,8 @@ def _look_at_rotation(direction: Float[Array, "3"]) -> Float[Array, "3 3"]:
     return jnp.stack([x, y, z], axis=1)
 
 
-def _box_outline(box: Float[Array, "4"], samples: int = 8) -> Float[Array, "n 2"]:
+def box_outline(box: Float[Array, "4"], samples: int = 8) -> Float[Array, "n 2"]:
+    """`samples` points along each edge of a box (x0, y0, x1, y1 px): (4 samples, 2)."""
     t = jnp.linspace(0.0, 1.0, samples)
     x0, y0, x1, y1 = box[0], box[1], box[2], box[3]
     top = jnp.stack([x0 + t * (x1 - x0), jnp.full_like(t, y0)], -1)
@@ -123,7 +124,7 @@ def rectified_crop(
     - `hc`: a ray-aligned hand crop: the crop camera looks along the ray of the box
       centre and its focal is chosen so the padded box just fills the crop.
     """
-    outline, outline_ok = camera.unproject_with_validity(_box_outline(box))  # rays of the box outline, camera frame
+    outline, outline_ok = camera.unproject_with_validity(box_outline(box))  # rays of the box outline, camera frame
     # Outline pixels beyond the camera's valid field of view (fisheye corners) have
     # mirrored rays that would blow the box up: leave them out (unless all are).
     keep = (outline_ok | ~jnp.any(outline_ok))[:, None]
@@ -200,6 +201,7 @@ def plucker_rays(crop: Crop, T_rig_cam: Float[Array, "4 4"], grid: int) -> Float
 __all__ = [
     "RECTIFICATION_STRATEGIES",
     "Crop",
+    "box_outline",
     "crop_affine",
     "crop_camera",
     "crop_poses",
@@ -210,6 +212,7 @@ __all__ = [
     "remap_crop",
     "square_box",
     "warp_crop",
+    "wide_pinhole",
 ]
 
 

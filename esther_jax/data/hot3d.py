@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import clips, mano, metrics
-from ..cameras import Fisheye624Camera, StereoRig
+from ..cameras import Fisheye624Camera, StereoRig, invert_transform
 from ..files import read_json
 from ..rotations import matrix_to_axis_angle, quaternion_to_matrix
 
@@ -83,23 +83,14 @@ def _orthonormal(R: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def _rigid_inverse(T: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(T)
-    R = T[..., :3, :3]
-    out[..., :3, :3] = np.swapaxes(R, -1, -2)
-    out[..., :3, 3] = -np.einsum("...ji,...j->...i", R, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def _rig(cams: dict, name: str) -> StereoRig:
     """`cams`: label -> (Fisheye624Camera, T_device_camera)."""
     missing = [label for label in CAMERA_LABELS if label not in cams]
     if missing:
         raise Hot3dFormatError(f"{name}: cameras {missing} are missing (found {sorted(cams)})")
     (left, T_device_left), (right, T_device_right) = cams[CAMERA_LABELS[0]], cams[CAMERA_LABELS[1]]
-    T_left_right = _rigid_inverse(T_device_left) @ T_device_right
-    return StereoRig(left, right, jnp.asarray(T_left_right, jnp.result_type(float)), name)
+    T_left_right = invert_transform(jnp.asarray(T_device_left)) @ jnp.asarray(T_device_right)
+    return StereoRig(left, right, T_left_right, name)
 
 
 def _quest3_cameras(path: pathlib.Path) -> dict:
@@ -290,7 +281,7 @@ def ground_truth(seq: Hot3dSequence, side: str, model: mano.ManoModel) -> dict[s
     h = seq.mano[side]
     dtype = jnp.result_type(float)
     betas = jnp.asarray(h["betas"], dtype)
-    T_rig_world = jnp.asarray(_rigid_inverse(seq.T_world_rig), dtype)
+    T_rig_world = invert_transform(jnp.asarray(seq.T_world_rig, dtype))
 
     def one(pca, global_orient, transl, T):
         hand_pose = mano.pca_to_hand_pose(model, pca, flat_hand_mean=False)

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from .. import clips
 from ..cameras import AbstractCamera, PinholeCamera, StereoRig
-from ..crops import RECTIFICATION_STRATEGIES, Crop, rectification_map, wide_pinhole
+from ..crops import RECTIFICATION_STRATEGIES, Crop, box_outline, rectification_map, wide_pinhole
 from ..files import check_out_dir, exclusive_lock
 from .base import Candidates, HandDetection, KeypointDetector
 from .handedness import assign_hands
@@ -101,7 +101,7 @@ class _ViewGeometry:
             self.wide = wide_pinhole(camera, float(strategy[len("offbb"):]))
             table = np.asarray(rectification_map(camera, Crop(self.wide, jnp.eye(3, dtype=self.wide.fx.dtype))), np.float32)
             self.map_x, self.map_y = np.ascontiguousarray(table[..., 0]), np.ascontiguousarray(table[..., 1])
-            self._back = jax.jit(lambda uv: camera.project(self.wide.unproject(uv)))
+            self._back = jax.jit(lambda uv, box: camera.project(self.wide.unproject(jnp.concatenate([uv, box_outline(box)]))))
 
     def image(self, frame: np.ndarray) -> np.ndarray:
         if (frame.shape[1], frame.shape[0]) != (self.camera.width, self.camera.height):
@@ -116,13 +116,7 @@ class _ViewGeometry:
         """A detection on the rectified image, in the original camera's pixels."""
         if not self.rectified:
             return hand
-        x0, y0, x1, y1 = hand.box
-        edge = np.linspace(0.0, 1.0, 9)
-        outline = np.concatenate([
-            np.stack([x0 + (x1 - x0) * edge, np.full(9, y0)], -1), np.stack([x0 + (x1 - x0) * edge, np.full(9, y1)], -1),
-            np.stack([np.full(9, x0), y0 + (y1 - y0) * edge], -1), np.stack([np.full(9, x1), y0 + (y1 - y0) * edge], -1),
-        ])  # fmt: skip
-        mapped = np.asarray(self._back(jnp.asarray(np.concatenate([hand.uv, outline]))), np.float64)
+        mapped = np.asarray(self._back(jnp.asarray(hand.uv), jnp.asarray(hand.box)), np.float64)
         uv, box_points = mapped[: len(hand.uv)], mapped[len(hand.uv) :]
         w, h = self.camera.width, self.camera.height
         inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
