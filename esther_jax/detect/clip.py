@@ -12,7 +12,7 @@ detectors are trained on perspective images), and the keypoints and boxes are ma
 back to the original camera exactly (`camera.project(wide.unproject(uv))`). Left and
 right hands are assigned by `handedness.assign_hands`.
 
-Long runs are safe: progress is saved every `checkpoint_every` frames in `out/.detect/`
+Long runs are safe: every `checkpoint_every` frames are saved once, as a chunk of `out/.detect/`
 (atomic writes) and a rerun continues from there; a lock stops a second `esther detect`
 writing the same clip; the clip's files appear only once complete.
 """
@@ -137,21 +137,24 @@ def make_detector(name: str) -> KeypointDetector:
     raise ValueError(f"unknown detector {name!r}; use 'mediapipe' or 'onnx:PATH/TO/MODEL.onnx'")
 
 
-def _state_path(out: pathlib.Path, index: int) -> pathlib.Path:
-    return out / ".detect" / f"detector{index}.npz"
+def _state_dir(out: pathlib.Path, index: int) -> pathlib.Path:
+    return out / ".detect" / f"detector{index}"
 
 
-def _load_state(path: pathlib.Path, name: str, max_hands: int) -> Candidates | None:
-    if not path.is_file():
-        return None
-    with np.load(path, allow_pickle=False) as data:
-        if str(data["detector"]) != name or data["score"].shape[2] != max_hands:
-            return None  # made by another detector or setting: start this detector again
-        return Candidates(**{f.name: data[f.name] for f in dataclasses.fields(Candidates)})
+def _load_chunks(folder: pathlib.Path, name: str, max_hands: int) -> list[Candidates]:
+    """The saved chunks of a detector, in frame order (each written once, atomically);
+    none when they were made by another detector or setting (that detector starts again)."""
+    parts = []
+    for path in sorted(folder.glob("frames_*.npz")):
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["detector"]) != name or data["score"].shape[2] != max_hands:
+                return []
+            parts.append(Candidates(**{f.name: data[f.name] for f in dataclasses.fields(Candidates)}))
+    return parts
 
 
-def _save_state(path: pathlib.Path, name: str, candidates: Candidates) -> None:
-    clips.save_npz(path, detector=np.asarray(name), **candidates.arrays())
+def _save_chunk(folder: pathlib.Path, name: str, start: int, chunk: Candidates) -> None:
+    clips.save_npz(folder / f"frames_{start:08d}.npz", detector=np.asarray(name), **chunk.arrays())
 
 
 def _concatenate(parts: list[Candidates]) -> Candidates:
@@ -162,16 +165,14 @@ def _run_detector(
     index: int, name: str, factory, sources: tuple[FrameSource, FrameSource], views: tuple[_ViewGeometry, _ViewGeometry],
     fps: float, out: pathlib.Path, max_hands: int, checkpoint_every: int, progress: bool,
 ) -> Candidates:  # fmt: skip
-    state = _state_path(out, index)
-    done = _load_state(state, name, max_hands)
-    parts = [done] if done is not None else []
-    start = done.num_frames if done is not None else 0
+    state = _state_dir(out, index)
+    parts = _load_chunks(state, name, max_hands)
+    start = sum(p.num_frames for p in parts)
     chunk = Candidates.empty(checkpoint_every, max_hands)
     filled = 0
     detectors = [factory(), factory()]
     bar = tqdm(total=sources[0].estimated_length(), initial=start, desc=f"detect {name}", unit="frame", disable=not progress)
     try:
-        frame_index = -1
         for frame_index, frames in enumerate(zip(*sources, strict=True)):
             if frame_index < start:
                 continue
@@ -181,8 +182,8 @@ def _run_detector(
             filled += 1
             bar.update(1)
             if filled == checkpoint_every:
+                _save_chunk(state, name, frame_index + 1 - filled, chunk)
                 parts.append(chunk)
-                _save_state(state, name, _concatenate(parts))
                 chunk, filled = Candidates.empty(checkpoint_every, max_hands), 0
     except ValueError as err:
         if "zip()" in str(err):
@@ -192,13 +193,13 @@ def _run_detector(
         bar.close()
         for detector in detectors:
             detector.close()
-    if filled:
-        parts.append(Candidates(**{k: v[:filled] for k, v in chunk.arrays().items()}))
+    if filled:  # the tail is saved too: a rerun after a later failure detects nothing again
+        tail = Candidates(**{k: v[:filled] for k, v in chunk.arrays().items()})
+        _save_chunk(state, name, sum(p.num_frames for p in parts), tail)
+        parts.append(tail)
     if not parts:
         raise clips.ClipFormatError(f"{sources[0].path} holds no frames")
-    candidates = _concatenate(parts)
-    _save_state(state, name, candidates)
-    return candidates
+    return _concatenate(parts)
 
 
 def detect_clip(
