@@ -35,9 +35,12 @@ import time
 
 import jax.numpy as jnp
 
+import esther_jax
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_attention_maps, plot_attention_shares, plot_depth_scatters
 from esther_jax.metrics import depth_scatter
+
+esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
 PAPER = {"stereo": (0.96, 8.0), "view-mask": (0.92, 11.0), "pure monocular": (0.69, 32.0)}
 """Correlation and random scatter (mm) of the paper's figure 8."""

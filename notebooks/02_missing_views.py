@@ -29,10 +29,13 @@
 # %%
 import time
 
+import esther_jax
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
 from esther_jax.train import validation
 from fitting import baselines
+
+esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
 start = time.perf_counter()
 scale = studies.scale_from_env()

@@ -35,8 +35,11 @@
 # %%
 import time
 
+import esther_jax
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
+
+esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
 RIG = "hot3d_quest3"
 start = time.perf_counter()

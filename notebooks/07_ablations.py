@@ -29,9 +29,12 @@
 # %%
 import time
 
+import esther_jax
 from esther_jax import model as M
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
+
+esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
 PAPER_MPJPE = {
     "esther": 19.60, "no-plucker": 33.60, "no-cross-view": 28.70, "no-guidance-masking-augmentation": 23.10, "no-flow-token": 22.10,
