@@ -96,16 +96,16 @@ def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, num: i
             model = mano.load_builtin(side)
             gt = clip.gt[side]
             gt_params = mano.ManoParams(*(jnp.asarray(gt[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(gt["betas"]), jnp.asarray(gt["transl"][t]))
-            meshes_gt.append((np.asarray(mano.forward(model, gt_params).vertices, np.float64), np.asarray(model.faces), scene.skin))
+            meshes_gt.append((np.asarray(mano.forward(model, gt_params).vertices, np.float64), np.asarray(model.faces)))
             params = mano.ManoParams(*(jnp.asarray(lab[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(lab["betas"]), jnp.asarray(lab["transl"][t]))
             fitted.append((side, np.asarray(mano.forward(model, params).vertices, np.float64), np.asarray(model.faces), bool(lab["valid"][t])))
         dtype = jnp.result_type(float)
-        gt_views = [(np.asarray(rig.to_views(jnp.asarray(m, dtype)), np.float64), f, a) for m, f, a in meshes_gt]  # (2, V, 3) each
+        gt_views = [(np.asarray(rig.to_views(jnp.asarray(m, dtype)), np.float64), f) for m, f in meshes_gt]  # (2, V, 3) each
         fit_uv = [np.asarray(rig.project(jnp.asarray(verts, dtype)), np.float64) for _, verts, _, _ in fitted]  # (2, V, 2)
         fit_depth = [np.asarray(rig.depths(jnp.asarray(verts, dtype)), np.float64) for _, verts, _, _ in fitted]  # (2, V)
         row = []
         for v, (camera, T_rig_cam) in enumerate(zip((rig.left, rig.right), np.asarray(rig.T_rig_cams, np.float64))):
-            in_cam = [(m[v], f, a) for m, f, a in gt_views]
+            in_cam = [render.Mesh(m[v], f, scene.skin, "skin", render.hand_rest_vertices()) for m, f in gt_views]
             image, _ = render.render_view(scene, camera, T_world_rig[t] @ T_rig_cam, in_cam)
             for (side, _, faces, ok), uv, depth in zip(fitted, fit_uv, fit_depth):
                 if ok:

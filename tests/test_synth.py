@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cameras, cli, clips, metrics
+from esther_jax import cameras, cli, clips, mano, metrics
 from esther_jax.crops import crop_camera, crop_poses, rectified_crop
 from esther_jax.data import detector, flow, motion, render, synth
 from esther_jax.rotations import axis_angle_to_matrix
@@ -42,25 +42,95 @@ def test_default_detector_is_noisy_and_confidence_tracks_error():
     del rng
 
 
-def test_visibility_agrees_with_the_renderers_depth_buffer(clean_clip):
-    rig = clean_clip.rig
+def test_visibility_agrees_with_the_renderers_depth_buffer():
+    """Ground-truth visibility (a splatted depth test of hands, forearms and the held box)
+    against the depth buffer of the rendered scene with everything in it."""
+    rng = synth.clip_rng(7, 1)
+    rig = cameras.rig_preset("esther")
+    m = motion.sample_clip(rng, rig, 24)
     scene = render.sample_scene(np.random.default_rng(0))
+    vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
     agree, total = 0, 0
     for t in (0, 8, 16):
-        meshes = [(clean_clip.gt[s]["vertices"][t].astype(np.float64), synth._faces(s), scene.skin) for s in clean_clip.gt]
-        _, depth = render.render_view(scene, rig.left, np.eye(4), meshes)
-        for side, gt in clean_clip.gt.items():
-            joints = gt["joints"][t].astype(np.float64)
+        _, depth = render.render_view(scene, rig.left, np.eye(4), synth._meshes_in(vertices, m, scene, t, np.eye(4)))
+        for side, track in m.hands.items():
+            joints = np.asarray(track.joints[t], np.float64)
             uv = np.rint(np.asarray(rig.left.project(jnp.asarray(joints, jnp.float32)))).astype(int)
             for j in range(21):
                 u, v = uv[j]
                 if not (0 <= u < rig.left.width and 0 <= v < rig.left.height) or joints[j, 2] <= 0:
                     continue
                 hidden_by_render = depth[v, u] < joints[j, 2] - 0.03
-                visible = gt["visibility"][t, 0, j]
-                agree += visible != hidden_by_render
+                agree += m.visibility[side][t, 0, j] != hidden_by_render
                 total += 1
     assert total > 20 and agree / total > 0.85
+
+
+def test_hand_skin_paints_nails_creases_and_pale_palms_where_they_belong():
+    h = render._hand_rest()
+    dark = render.SKIN_TONES[-1]
+    albedo, nail = render.hand_skin_albedo(h["vertices"], h["normals"], dark)
+    assert albedo.shape == h["vertices"].shape and np.all((albedo >= 0) & (albedo <= 1))
+    model = mano.load_builtin("right")
+    tips = h["tips"]
+    near_tip = np.linalg.norm(h["vertices"][:, None] - tips[None], axis=-1).min(axis=1) < 0.02
+    dorsal = h["normals"][:, 1] > 0.5  # MANO frame: the back of the hand is +y
+    palmar = h["normals"][:, 1] < -0.5
+    assert np.all(nail[~near_tip] < 0.05), "nails only on the distal phalanges"
+    assert np.all(nail[palmar] < 0.05), "no nail on the palmar side"
+    for f in range(5):  # every finger has a nail on its back
+        own = np.linalg.norm(h["vertices"] - tips[f], axis=1) < 0.012
+        assert nail[own & dorsal].max() > 0.9, f
+    lum = albedo @ np.array([0.299, 0.587, 0.114])
+    palm = palmar & (h["vertices"][:, 0] > float(model.joint_template[4, 0]))  # between the wrist and the knuckles
+    back = dorsal & (h["vertices"][:, 0] > float(model.joint_template[4, 0]))
+    assert np.median(lum[palm]) > 1.3 * np.median(lum[back]), "dark skin has paler palms"
+    # a flexion crease darkens the palmar skin right at a finger joint, not between joints
+    pip, dip = np.asarray(model.joint_template[5], np.float64), np.asarray(model.joint_template[6], np.float64)  # middle finger
+    along = (dip - pip) / np.linalg.norm(dip - pip)
+    up = np.array([0.0, 1.0, 0.0])
+    t = np.linspace(-0.008, 0.008, 161)
+    points = pip + t[:, None] * along - 0.008 * up  # a line on the palmar skin across the PIP joint
+    line, _ = render.hand_skin_albedo(points, np.tile(-up, (len(t), 1)), dark)
+    line_lum = line @ np.array([0.299, 0.587, 0.114])
+    assert line_lum[np.abs(t) < 0.001].min() < 0.85 * np.median(line_lum[np.abs(t) > 0.005])
+
+
+def test_forearms_leave_the_wrist_outward_and_are_mirror_images():
+    rng = synth.clip_rng(5, 0)
+    m = motion.sample_clip(rng, cameras.rig_preset("esther"), 4)
+    faces = motion.forearm_faces()
+    for side, track in m.hands.items():
+        arm = m.forearms[side]
+        joints = np.asarray(track.joints, np.float64)
+        first_ring = arm[:, : motion.FOREARM_AROUND].mean(axis=1)
+        assert np.all(np.linalg.norm(first_ring - joints[:, 0], axis=-1) < 0.01), "the tube starts at the wrist"
+        last_ring = arm[:, -motion.FOREARM_AROUND :].mean(axis=1)
+        assert np.all(np.abs(np.linalg.norm(last_ring - joints[:, 0], axis=-1) - motion.FOREARM_LENGTH_M) < 0.03)
+        # outward faces: each face normal points away from the tube's local axis
+        tri = arm[0][faces]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        ring = faces.min(axis=1) // motion.FOREARM_AROUND
+        centres = arm[0].reshape(motion.FOREARM_RINGS, motion.FOREARM_AROUND, 3).mean(axis=1)
+        assert np.all(np.einsum("fk,fk->f", normal, tri.mean(axis=1) - centres[ring]) > 0)
+    # a mirrored hand gets the mirrored forearm (elbow mirrored with it)
+    joints = np.asarray(next(iter(m.hands.values())).joints, np.float64)
+    elbow = np.tile([0.2, 0.45, 0.08], (len(joints), 1))
+    flip = np.array([-1.0, 1.0, 1.0])
+    mirrored = motion.forearm_surface(joints * flip, elbow * flip).reshape(len(joints), motion.FOREARM_RINGS, motion.FOREARM_AROUND, 3)
+    expected = (motion.forearm_surface(joints, elbow) * flip).reshape(mirrored.shape)
+    around = -np.arange(motion.FOREARM_AROUND) % motion.FOREARM_AROUND  # the mirror runs round the ring the other way
+    np.testing.assert_allclose(mirrored, expected[:, :, around], atol=1e-12)
+
+
+def test_ambient_occlusion_darkens_what_lies_behind_a_nearer_surface():
+    depth = np.full((60, 60), np.inf, np.float32)
+    depth[10:50, 10:50] = 0.40  # a flat plane...
+    flat = render.ambient_occlusion(depth, 4.0)
+    assert np.allclose(flat, 1.0, atol=1e-6)
+    depth[10:50, 10:28] = 0.37  # ...with a nearer finger over its left part
+    ao = render.ambient_occlusion(depth, 4.0)
+    assert ao[30, 29] < 0.75 and ao[30, 45] > 0.99 and ao[30, 20] > 0.99
 
 
 def test_onscreen_flags_follow_the_rule(clean_clip):

@@ -16,13 +16,14 @@ y down, z forward), then expressed in the rig frame of every frame:
 - *Articulation*: keyframes from the built-in model's natural-pose archetypes (grasp,
   release, pinch, point, flat, ...) blended with joint noise, joined by minimum-jerk
   interpolation in anatomical angles and clipped to the joint limits.
+- *Forearms*: an elliptical tube from each wrist towards the elbow below the head (`forearm_surface`): rendered, and an occluder of the joints.
 - *Shape*: betas ~ N(0, shape_sd^2 I), one per clip (both hands belong to one person);
   `MotionConfig.shape_sd` > 1 makes hand sizes past the training distribution.
 
 Left hands are sampled as right hands and mirrored (docs/architecture.md), then posed with
 the left model. Ground truth per frame and hand: MANO parameters in the rig frame,
 21 joints, vertices on request, per-view per-joint visibility (inside the image and not
-hidden by the hand itself, the other hand or the held object, by a depth test) and the
+hidden by the hand itself, the other hand, a forearm or the held object, by a depth test) and the
 appendix-L on-screen flag.
 """
 
@@ -206,6 +207,7 @@ class ClipMotion:
     object_corners: np.ndarray | None  # (T, 8, 3) rig frame
     object_faces: np.ndarray | None
     betas: np.ndarray
+    forearms: dict[str, np.ndarray]  # side -> (T, V, 3) rig frame (`forearm_surface`, faces `forearm_faces`)
 
 
 @eqx.filter_jit
@@ -258,8 +260,83 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
             rest_wrist = np.asarray(mano.rest_joints(models[side], jnp.asarray(betas, jnp.result_type(float)))[0])
             in_world = np.einsum("tij,kj->tki", R_world, corners - rest_wrist) + wrist[:, None]
             object_corners = _to_rig(T_rig_world, in_world)
-    visibility, onscreen = _visibility(rig, hands, object_corners, object_faces)
-    return ClipMotion(rig, cfg.fps, T_world_rig, hands, visibility, onscreen, object_corners, object_faces, betas)
+    forearms = _forearms(hands, T_rig_world)
+    visibility, onscreen = _visibility(rig, hands, forearms, object_corners, object_faces)
+    return ClipMotion(rig, cfg.fps, T_world_rig, hands, visibility, onscreen, object_corners, object_faces, betas, forearms)
+
+
+# ----------------------------------------------------------------------------- forearms
+
+ELBOW_WORLD_M = np.array([0.20, 0.45, 0.08])
+"""Where a right forearm points from the wrist (world frame: right of, below and a little
+in front of the eyes; the left one's is mirrored). The forearm runs straight from the
+wrist towards this point, bent from the hand's long axis by at most 70 degrees: it comes
+into egocentric views from below, as real forearms do, and does not cover the hand."""
+FOREARM_LENGTH_M = 0.26
+FOREARM_MAX_BEND_RAD = math.radians(70.0)
+FOREARM_RINGS = 14
+FOREARM_AROUND = 20
+
+
+def forearm_faces(rings: int = FOREARM_RINGS, around: int = FOREARM_AROUND) -> np.ndarray:
+    """(F, 3) outward triangles of the open forearm tube of `forearm_surface`."""
+    i, j = np.meshgrid(np.arange(rings - 1), np.arange(around), indexing="ij")
+    a, b = i * around + j, i * around + (j + 1) % around
+    c, d = b + around, a + around
+    return np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+
+
+def forearm_surface(
+    joints: np.ndarray, elbow: np.ndarray, rings: int = FOREARM_RINGS, around: int = FOREARM_AROUND
+) -> np.ndarray:
+    """(T, rings * around, 3) vertices of a forearm attached to a hand (same frame).
+
+    Args:
+        joints: (T, 21, 3) the hand's keypoints (metres).
+        elbow: (T, 3) the point the forearm runs towards (`ELBOW_WORLD_M` in that frame).
+    A straight tube from 5 mm inside the wrist, bent from the hand's long axis by at most
+    `FOREARM_MAX_BEND_RAD`; its cross-section is an ellipse, wide across the palm, 5.0 x
+    3.0 cm at the wrist (the built-in hand's wrist) and 7.2 x 6.0 cm at the elbow, for a
+    hand of 9 cm from the wrist to the middle knuckle (scaled with the hand). Faces:
+    `forearm_faces`.
+    """
+    wrist, index, middle, pinky = joints[:, 0], joints[:, 5], joints[:, 9], joints[:, 17]
+    hand_length = np.linalg.norm(middle - wrist, axis=-1, keepdims=True)  # (T, 1)
+    back = (wrist - middle) / hand_length
+    to_elbow = elbow - wrist
+    to_elbow /= np.linalg.norm(to_elbow, axis=-1, keepdims=True)
+    # straight towards the elbow, the wrist bent by at most FOREARM_MAX_BEND_RAD
+    cos = np.clip(np.sum(back * to_elbow, axis=-1, keepdims=True), -1.0, 1.0)
+    normal = to_elbow - cos * back
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+    bend = np.minimum(np.arccos(cos), FOREARM_MAX_BEND_RAD)
+    direction = np.cos(bend) * back + np.sin(bend) * normal  # (T, 3)
+    s = np.linspace(-0.005, FOREARM_LENGTH_M, rings)  # distance from the wrist
+    tangent = np.broadcast_to(direction[:, None], (len(joints), rings, 3))
+    centre = wrist[:, None] + s[None, :, None] * tangent
+    across = (index - pinky)[:, None] * np.ones((1, rings, 1))
+    across = across - np.sum(across * tangent, axis=-1, keepdims=True) * tangent
+    across /= np.linalg.norm(across, axis=-1, keepdims=True)
+    thick = np.cross(tangent, across)  # (tangent, across, thick) is right-handed: outward faces
+    scale = hand_length[:, None] / 0.09  # (T, 1, 1)
+    half_w = (0.025 + 0.011 * s / FOREARM_LENGTH_M)[None, :, None] * scale
+    half_t = (0.015 + 0.015 * s / FOREARM_LENGTH_M)[None, :, None] * scale
+    phi = 2 * np.pi * np.arange(around) / around
+    ring = (
+        centre[:, :, None]
+        + np.cos(phi)[None, None, :, None] * (half_w * across)[:, :, None]
+        + np.sin(phi)[None, None, :, None] * (half_t * thick)[:, :, None]
+    )
+    return ring.reshape(len(joints), rings * around, 3)
+
+
+def _forearms(hands: dict[str, HandTrack], T_rig_world: np.ndarray) -> dict[str, np.ndarray]:
+    out = {}
+    for side, track in hands.items():
+        elbow_world = ELBOW_WORLD_M * np.array([1.0 if side == "right" else -1.0, 1.0, 1.0])
+        elbow = _to_rig(T_rig_world, np.broadcast_to(elbow_world, (len(T_rig_world), 1, 3)))[:, 0]
+        out[side] = forearm_surface(np.asarray(track.joints, np.float64), elbow)
+    return out
 
 
 # ----------------------------------------------------------------------------- visibility
@@ -314,8 +391,23 @@ def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -
     return in_image & (front > j_depth - jnp.asarray(_SURFACE_MARGIN_M, j_depth.dtype))
 
 
-def _visibility(rig: StereoRig, hands: dict[str, HandTrack], object_corners, object_faces):
+def _forearm_points(forearm: np.ndarray, factor: int = 4) -> np.ndarray:
+    """(T, n, 3) the forearm tube resampled `factor` times finer (for the depth test)."""
+    T = len(forearm)
+    grid = forearm.reshape(T, FOREARM_RINGS, FOREARM_AROUND, 3)
+    grid = np.concatenate([grid, grid[:, :, :1]], axis=2)  # close the ring
+    r = np.linspace(0, FOREARM_RINGS - 1, (FOREARM_RINGS - 1) * factor + 1)
+    a = np.linspace(0, FOREARM_AROUND, FOREARM_AROUND * factor, endpoint=False)
+    r0, a0 = np.minimum(r.astype(int), FOREARM_RINGS - 2), a.astype(int)
+    fr, fa = (r - r0)[:, None, None], (a - a0)[None, :, None]
+    g = lambda i, j: grid[:, i][:, :, j]  # noqa: E731
+    points = (1 - fr) * ((1 - fa) * g(r0, a0) + fa * g(r0, a0 + 1)) + fr * ((1 - fa) * g(r0 + 1, a0) + fa * g(r0 + 1, a0 + 1))
+    return points.reshape(T, -1, 3)
+
+
+def _visibility(rig: StereoRig, hands: dict[str, HandTrack], forearms: dict[str, np.ndarray], object_corners, object_faces):
     occluders = [np.asarray(h.vertices) for h in hands.values()]
+    occluders += [_forearm_points(forearms[side]) for side in hands]
     if object_corners is not None:
         occluders.append(_object_points(object_corners, object_faces))
     occ_rig = np.concatenate(occluders, axis=1)

@@ -124,17 +124,33 @@ def make_clip(seed: int, index: int, cfg: SynthConfig = SynthConfig()) -> Clip:
 
 
 def _meshes_in(vertices: dict[str, np.ndarray], m: motion.ClipMotion, scene: render.Scene, t: int, T_cam_rig: np.ndarray):
-    """Hands (and the held box) of frame t in a camera frame, for `render_view`."""
+    """Hands, forearms (bare, or sleeved past the wrist) and the held box of frame t in a
+    camera frame, for `render_view`."""
+    to_cam = lambda x: x @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]  # noqa: E731
     out = []
     for side, v_rig in vertices.items():
-        v = v_rig[t] @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]
-        out.append((v, _faces(side), scene.skin))
+        out.append(render.Mesh(to_cam(v_rig[t]), _faces(side), scene.skin, "skin", render.hand_rest_vertices()))
+        arm, faces = to_cam(m.forearms[side][t]), _forearm_faces()
+        if scene.sleeve_colour is None:
+            out.append(render.Mesh(arm, faces, scene.skin, "skin"))
+        else:  # a cuff 7 cm up the forearm
+            bare = faces.min(axis=1) // motion.FOREARM_AROUND < _SLEEVE_FROM_RING
+            out.append(render.Mesh(arm, faces[bare], scene.skin, "skin"))
+            out.append(render.Mesh(arm, faces[~bare], scene.sleeve_colour))
     if m.object_corners is not None:
-        v = m.object_corners[t] @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]
         quads = m.object_faces
         tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-        out.append((v, tris, scene.object_colour))
+        out.append(render.Mesh(to_cam(m.object_corners[t]), tris, scene.object_colour))
     return out
+
+
+_SLEEVE_FROM_RING = 4
+"""Forearm rings before the sleeve starts (about 7 cm from the wrist)."""
+
+
+@functools.cache
+def _forearm_faces() -> np.ndarray:
+    return motion.forearm_faces()
 
 
 @functools.cache
