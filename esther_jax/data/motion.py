@@ -16,7 +16,8 @@ y down, z forward), then expressed in the rig frame of every frame:
 - *Articulation*: keyframes from the built-in model's natural-pose archetypes (grasp,
   release, pinch, point, flat, ...) blended with joint noise, joined by minimum-jerk
   interpolation in anatomical angles and clipped to the joint limits.
-- *Forearms*: an elliptical tube from each wrist towards the elbow below the head (`forearm_surface`): rendered, and an occluder of the joints.
+- *Forearms*: an elliptical tube from each wrist towards the elbow below the head
+  (`forearm_surface`): rendered, and an occluder of the joints.
 - *Shape*: betas ~ N(0, shape_sd^2 I), one per clip (both hands belong to one person);
   `MotionConfig.shape_sd` > 1 makes hand sizes past the training distribution.
 
