@@ -93,7 +93,7 @@ def canonical_views() -> dict:
     from esther_jax.rotations import matrix_to_axis_angle
 
     model = mano.load_builtin("right")
-    frames = np.asarray(mano.anatomical_frames(model.joint_template, model.v_template[model.fingertip_ids], model.is_right), np.float64)
+    frames = mano.anatomical_frames(model.joint_template, model.v_template[model.fingertip_ids], model.is_right)
     camera = PinholeCamera(260.0, 260.0, (CROP - 1) / 2, (CROP - 1) / 2, CROP, CROP)
     upright = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # model x (wrist side) -> image down
     rows = {}
@@ -102,7 +102,7 @@ def canonical_views() -> dict:
             scene = dataclasses.replace(render.sample_scene(np.random.default_rng(0)), skin=skin)
             found, errors = 0, []
             for name in ARCHETYPES:
-                hand_pose = jnp.asarray(np.einsum("jai,ji->ja", frames, archetype_angles(name)))
+                hand_pose = mano.anatomical_to_hand_pose(jnp.asarray(archetype_angles(name)), frames)
                 for palm_to_camera in (True, False):
                     for roll in (0.0, 0.6):
                         flip = np.diag([1.0, 1.0, 1.0]) if palm_to_camera else np.diag([1.0, -1.0, -1.0])
