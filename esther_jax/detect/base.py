@@ -7,8 +7,9 @@ a per-keypoint confidence in [0, 1], a box and a hand score. It does not decide 
 hand is the left one: that is `handedness.assign_hands`, from stereo geometry and
 time, with the detector's own left/right guess as weak evidence only.
 
-Adapters: `MediaPipeHands` (embedded, offline) and `OnnxPoseDetector` (a YOLO-pose
-style ONNX model the user owns). Anything with `name`, `detect(image, timestamp_s)`
+Adapters: `MediaPipeHands` (embedded, offline), and ONNX models the user owns:
+`OnnxPoseDetector` (YOLO-pose style) and `OnnxTopDownPose` (ViTPose style, on another
+detector's boxes). Anything with `name`, `detect(image, timestamp_s)`
 and `close()` plugs into `detect_clip` (one instance per view, as trackers keep state).
 """
 

@@ -125,7 +125,10 @@ class _ViewGeometry:
 
 
 def make_detector(name: str) -> KeypointDetector:
-    """A detector by name: `mediapipe`, or `onnx:PATH` (a YOLO-pose style ONNX model)."""
+    """A detector by name: `mediapipe`; `onnx:PATH` (a YOLO-pose style ONNX model);
+    `vitpose:PATH` (a top-down heatmap ONNX model, ViTPose and the like) on MediaPipe's
+    boxes, or `vitpose:PATH@BOXES` on the boxes of the detector named BOXES (e.g.
+    `vitpose:vitpose_hand.onnx@onnx:yolo11_hand.onnx`, the paper's pair)."""
     if name == "mediapipe":
         from .mediapipe import MediaPipeHands
 
@@ -134,7 +137,19 @@ def make_detector(name: str) -> KeypointDetector:
         from .onnx import OnnxPoseDetector
 
         return OnnxPoseDetector(name[len("onnx:") :])
-    raise ValueError(f"unknown detector {name!r}; use 'mediapipe' or 'onnx:PATH/TO/MODEL.onnx'")
+    if name.startswith("vitpose:"):
+        from .onnx import OnnxTopDownPose
+
+        model, _, boxes = name[len("vitpose:") :].partition("@")
+        if boxes.startswith("vitpose:"):
+            raise ValueError(f"{name!r}: the box source of a top-down model must find hands itself (mediapipe or onnx:PATH)")
+        box_source = make_detector(boxes or "mediapipe")
+        try:
+            return OnnxTopDownPose(model, box_source)
+        except Exception:
+            box_source.close()
+            raise
+    raise ValueError(f"unknown detector {name!r}; use 'mediapipe', 'onnx:MODEL.onnx' or 'vitpose:MODEL.onnx[@BOX_DETECTOR]'")
 
 
 def _state_dir(out: pathlib.Path, index: int) -> pathlib.Path:
