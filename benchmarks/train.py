@@ -126,7 +126,7 @@ def _baseline(train_windows, val_windows, data_cfg) -> dict:
     """The trivial baseline's P-MPJPE / PA-MPJPE / wrist (mm) on the held-out windows."""
     from esther_jax import clips as clip_format
     from esther_jax.cameras import StereoRig
-    from esther_jax.triangulation import triangulate_batch
+    from esther_jax.triangulation import triangulate_rig
 
     canonical, wrists_seen = [], []
     for w in train_windows:
@@ -143,7 +143,7 @@ def _baseline(train_windows, val_windows, data_cfg) -> dict:
         kp = clip_format.load_npz(clip_format.hand_file(w.clip, w.side, "keypoints"), "keypoints")
         sl = slice(w.start, w.start + data_cfg.frames)
         uv, conf = jnp.asarray(kp["uv"][:, sl, :, 0], jnp.float32), jnp.asarray(kp["conf"][:, sl, :, 0], jnp.float32)
-        tri = triangulate_batch(rig.cameras, rig.T_rig_cams, uv, conf)  # (D, T): the wrist, per detector
+        tri = triangulate_rig(rig, uv, conf)  # (D, T): the wrist, per detector
         ok = np.asarray(tri.valid)
         pts = np.where(ok[..., None], np.asarray(tri.point), 0.0).sum(0) / np.maximum(ok.sum(0), 1)[:, None]
         have = ok.any(0)

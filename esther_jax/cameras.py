@@ -421,6 +421,15 @@ class StereoRig(eqx.Module):
         X_left, X_right = self.to_views(X_rig)
         return jnp.stack([self.left.is_visible(X_left, margin), self.right.is_visible(X_right, margin)])
 
+    def unproject_with_validity(self, uv: Float[Array, "2 *batch 2"]) -> tuple[Float[Array, "2 *batch 3"], Bool[Array, "2 *batch"]]:
+        """Per view, the rays of pixels (pixel-centre convention) in that camera's frame
+        (z = 1), each view with its own camera, and whether the camera can invert the pixel
+        (`AbstractCamera.unproject_with_validity`)."""
+        if uv.ndim < 2 or uv.shape[0] != 2 or uv.shape[-1] != 2:
+            raise ValueError(f"StereoRig.unproject_with_validity takes pixels (2 views, ..., 2); got shape {uv.shape}")
+        (rays_l, ok_l), (rays_r, ok_r) = self.left.unproject_with_validity(uv[0]), self.right.unproject_with_validity(uv[1])
+        return jnp.stack([rays_l, rays_r]), jnp.stack([ok_l, ok_r])
+
     def depths(self, X_rig: Float[Array, "*batch 3"]) -> Float[Array, "2 *batch"]:
         """Depth (m) of rig-frame points along each camera's optical axis (camera z;
         negative behind the camera)."""
@@ -433,8 +442,10 @@ class StereoRig(eqx.Module):
 
     @property
     def cameras(self) -> AbstractCamera:
-        """Both cameras stacked along a leading view axis (for vmap / triangulation);
-        they must be of the same model and image size."""
+        """Both cameras stacked along a leading view axis (for vmap); they must be of the
+        same model and image size. Rig-level code that must also run on rigs of two
+        different cameras uses the point methods, `unproject_with_validity` and
+        `triangulation.triangulate_rig` instead."""
         if type(self.left) is not type(self.right) or (self.left.width, self.left.height) != (
             self.right.width,
             self.right.height,

@@ -16,6 +16,7 @@ would be mirrored) counts as unobserved (weight 0).
 """
 
 import math
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -75,7 +76,7 @@ def _solve_symmetric3(M: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Arr
 
 
 def triangulate(
-    cameras: AbstractCamera,
+    cameras: AbstractCamera | Sequence[AbstractCamera],
     T_rig_cams: Float[Array, "views 4 4"],
     uv: Float[Array, "views 2"],
     weights: Float[Array, "views"],
@@ -83,7 +84,8 @@ def triangulate(
     """Triangulate one point seen in several views.
 
     Args:
-        cameras: the views' cameras stacked along a leading axis (e.g. `rig.cameras`).
+        cameras: the views' cameras, one per view (e.g. `(rig.left, rig.right)`; of any
+            models and image sizes), or stacked along a leading axis (`rig.cameras`).
         T_rig_cams: pose of each camera in the rig frame (`X_rig = T @ X_cam`).
         uv: the observed pixel in each view.
         weights: per-view confidence in [0, 1]; 0 means "not observed".
@@ -105,7 +107,12 @@ def triangulate(
     uv_safe = jnp.where(finite[:, None], uv, 0.0)
     R = [[[T_rig_cams[v, i, j] for j in range(3)] for i in range(3)] for v in range(num)]
     t = [[T_rig_cams[v, i, 3] for i in range(3)] for v in range(num)]
-    cams = [jax.tree.map(lambda x, v=v: x[v], cameras) for v in range(num)]
+    if isinstance(cameras, AbstractCamera):
+        cams = [jax.tree.map(lambda x, v=v: x[v], cameras) for v in range(num)]
+    elif len(cameras) == num:
+        cams = list(cameras)
+    else:
+        raise ValueError(f"triangulate: {len(cameras)} cameras for {num} views")
     # A pixel its camera cannot invert (a fisheye corner beyond the valid field of view,
     # whose ray is mirrored) does not observe the point: weight 0, and a harmless ray.
     unprojected = [cams[v].unproject_with_validity(uv_safe[v]) for v in range(num)]
@@ -176,8 +183,17 @@ def triangulate(
 
 
 def triangulate_stereo(rig: StereoRig, uv: Float[Array, "2 2"], weights: Float[Array, "2"]) -> Triangulation:
-    """`triangulate` with the two cameras of a stereo rig (views ordered left, right)."""
-    return triangulate(rig.cameras, rig.T_rig_cams, uv, weights)
+    """`triangulate` with the two cameras of a stereo rig (views ordered left, right; the
+    cameras may differ in model and image size)."""
+    return triangulate((rig.left, rig.right), rig.T_rig_cams, uv, weights)
+
+
+def triangulate_rig(
+    rig: StereoRig, uv: Float[Array, "*batch 2 2"], weights: Float[Array, "*batch 2"], *, chunk: int = 8192
+) -> Triangulation:
+    """`triangulate_stereo` over any leading axes (e.g. frames x joints): `triangulate_batch`
+    with the rig's two cameras, which may differ in model and image size."""
+    return triangulate_batch((rig.left, rig.right), rig.T_rig_cams, uv, weights, chunk=chunk)
 
 
 def weak_perspective_to_translation(
@@ -202,7 +218,7 @@ def weak_perspective_to_translation(
 
 
 def triangulate_batch(
-    cameras: AbstractCamera,
+    cameras: AbstractCamera | Sequence[AbstractCamera],
     T_rig_cams: Float[Array, "views 4 4"],
     uv: Float[Array, "*batch views 2"],
     weights: Float[Array, "*batch views"],

@@ -9,7 +9,7 @@ metrics (`train.validation.score_predictions`).
    them (`fitting.fuse`, appendix A: the most confident detection anchors the joint,
    agreeing detections are averaged by confidence; a joint below the confidence
    threshold is not observed).
-2. Stereo: a joint observed in both views is triangulated (`triangulate_batch`, DLT
+2. Stereo: a joint observed in both views is triangulated (`triangulate_rig`, DLT
    weighted by the fused confidences, as the teacher's prefilter does).
 3. One view: a joint observed in one view only, or whose two rays give no valid point,
    lies on its ray in the (more confident) view at the prior depth `prior_depth_m`
@@ -49,7 +49,7 @@ from esther_jax.eval.protocols import drop_view_keypoints
 from esther_jax.model.esther import ClipInput
 from esther_jax.train.data import DataConfig, Window, load_example, mirror_targets
 from esther_jax.train.losses import Targets, crop_projections
-from esther_jax.triangulation import triangulate_batch
+from esther_jax.triangulation import triangulate_rig
 
 from .fusion import fuse
 
@@ -89,8 +89,8 @@ def _window_joints(
 ) -> tuple[Float[Array, "T 21 3"], Bool[Array, "T"]]:
     """One window's baseline joints (the targets' frame) and emitted frames (module docstring)."""
     fused = fuse(uv, conf, box, box_score)  # (T, 2, 21, 2), (T, 2, 21); confidence 0: not observed
-    tri = triangulate_batch(rig.cameras, rig.T_rig_cams, jnp.swapaxes(fused.uv, 1, 2), jnp.swapaxes(fused.conf, 1, 2))  # (T, 21)
-    rays, ray_ok = jax.vmap(lambda camera, x: camera.unproject_with_validity(x))(rig.cameras, jnp.moveaxis(fused.uv, 1, 0))
+    tri = triangulate_rig(rig, jnp.swapaxes(fused.uv, 1, 2), jnp.swapaxes(fused.conf, 1, 2))  # (T, 21)
+    rays, ray_ok = rig.unproject_with_validity(jnp.moveaxis(fused.uv, 1, 0))
     view_conf = jnp.moveaxis(fused.conf, 1, 0)  # (2, T, 21)
     seen = (view_conf > 0) & ray_ok
     on_ray = jax.vmap(apply_transform)(rig.T_rig_cams, rays * prior_depth)  # rays have z = 1: camera z = prior depth

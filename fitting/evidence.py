@@ -1,7 +1,7 @@
 """Stereo prefilter (appendix A) and initialisation of the fit, on any rig geometry.
 
 Prefilter: every fused joint is triangulated with its confidences (the core's
-`triangulate_batch`); joints whose depth along the axis of a camera that observes them
+`triangulate_rig`); joints whose depth along the axis of a camera that observes them
 is outside 0.1-1.0 m are rejected (on a divergent rig the rig frame's z says little:
 a hand 0.42 m from the headset can sit at z = 0.05 m in the left camera), and so are
 isolated matches: joints all of whose triangulated bones deviate by more than 40 % from
@@ -39,7 +39,7 @@ from esther_jax import mano
 from esther_jax.cameras import StereoRig, apply_transform
 from esther_jax.mano import KEYPOINT_PARENTS, PALM_KEYPOINTS
 from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from esther_jax.triangulation import triangulate_batch
+from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
 from .priors import huber_vector
@@ -81,7 +81,7 @@ def template_bones(model: mano.ManoModel, betas: Float[Array, "10"] | None = Non
 
 def prefilter(rig: StereoRig, fused: Fused, bones: Float[Array, "21"]) -> Evidence:
     """Appendix A's coarse filter: per-camera depth range, then isolated bone lengths."""
-    tri = triangulate_batch(rig.cameras, rig.T_rig_cams, jnp.swapaxes(fused.uv, 1, 2), jnp.swapaxes(fused.conf, 1, 2))
+    tri = triangulate_rig(rig, jnp.swapaxes(fused.uv, 1, 2), jnp.swapaxes(fused.conf, 1, 2))
     X, valid = tri.point, tri.valid  # (T, 21, 3), (T, 21)
     depth = jnp.moveaxis(rig.depths(X), 0, 1)  # (T, 2, 21) along each camera's axis
     seen = fused.conf > 0
@@ -216,7 +216,7 @@ class PalmPose(eqx.Module):
 
 
 def _palm_rays(rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"]):
-    rays, valid = jax.vmap(lambda cam, p: cam.unproject_with_validity(p))(rig.cameras, uv)
+    rays, valid = rig.unproject_with_validity(uv)
     palm = np.asarray(PALM_KEYPOINTS)
     rays = rays[:, palm] / jnp.linalg.norm(rays[:, palm], axis=-1, keepdims=True)
     return rays, jnp.where(valid[:, palm], weight[:, palm], 0.0)

@@ -38,3 +38,12 @@ def aimed_crop_cameras(rig, size: int, focal: float, target=(0.0, 0.05, 0.4)):
         x = x / jnp.linalg.norm(x)
         R.append(jnp.stack([x, jnp.cross(z, x), z], axis=1))
     return K, jnp.stack(R)
+
+
+def mixed_rig():
+    """A rig of two different cameras: the esther rig's 1920 x 1200 pinhole on the left and
+    a 1280 x 1024 Quest 3 fisheye on the right, 62 mm apart (esther's baseline)."""
+    from esther_jax import cameras
+
+    esther, quest3 = cameras.rig_preset("esther"), cameras.rig_preset("hot3d_quest3")
+    return cameras.StereoRig(esther.left, quest3.right, esther.T_left_right, "mixed")

@@ -22,6 +22,8 @@ from esther_jax.detect import Candidates, HandDetection, assign_hands, chirality
 from esther_jax.detect.base import keypoint_box
 from esther_jax.files import exclusive_lock
 
+from .helpers import mixed_rig
+
 FRAMES = 8
 ORACLE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mediapipe_oracle"
 HAVE_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None and importlib.util.find_spec("hand_tracking") is not None
@@ -43,15 +45,16 @@ def two_hands():
 
 class GroundTruthDetector:
     """Detects the synthetic hands exactly (projected joints), in the image it is given:
-    the view's own pixels, or the rectified wide pinhole's for a fisheye view. Its labels
+    the view's own pixels, or the rectified wide pinhole's for a fisheye view (as
+    `detect_clip` gives it; `rectified=False`: the fisheye's own pixels). Its labels
     are wrong on purpose and it has no 3D, so only stereo geometry can tell the sides."""
 
     name = "truth"
 
-    def __init__(self, joints: dict, rig: cameras.StereoRig, view: int, calls: list, fail_after: int | None = None):
+    def __init__(self, joints: dict, rig: cameras.StereoRig, view: int, calls: list, fail_after: int | None = None, rectified: bool = True):
         self.joints, self.rig, self.view, self.calls, self.fail_after = joints, rig, view, calls, fail_after
         camera = rig.left if view == 0 else rig.right
-        self.camera = camera if isinstance(camera, cameras.PinholeCamera) else crops.wide_pinhole(camera, 120.0)
+        self.camera = camera if isinstance(camera, cameras.PinholeCamera) or not rectified else crops.wide_pinhole(camera, 120.0)
         self.frame = 0
 
     def detect(self, image, timestamp_s):
@@ -94,26 +97,27 @@ def test_chirality_is_positive_for_right_hands_and_flips_with_mirroring(two_hand
     assert chirality(np.full((21, 3), np.nan)) == 0.0
 
 
-def test_assign_hands_uses_geometry_over_wrong_labels(two_hands):
-    rig = cameras.rig_preset("esther")
+@pytest.mark.parametrize("rig_name", ["esther", "mixed"])
+def test_assign_hands_uses_geometry_over_wrong_labels(two_hands, rig_name):
+    rig = mixed_rig() if rig_name == "mixed" else cameras.rig_preset(rig_name)  # mixed: a pinhole and a fisheye
     calls: list = []
     c = Candidates.empty(FRAMES, 2)
     for view in (0, 1):
-        detector = GroundTruthDetector(two_hands, rig, view, calls)
+        detector = GroundTruthDetector(two_hands, rig, view, calls, rectified=False)
         for t in range(FRAMES):
             c.put(t, view, detector.detect(None, t / 30))
     hands, report = assign_hands(c, rig)
     assert set(hands) == {"right", "left"}
     for side in hands:
         expected = np.asarray(rig.project(jnp.asarray(two_hands[side])))  # (2, T, 21, 2)
-        np.testing.assert_allclose(hands[side]["uv"], expected.transpose(1, 0, 2, 3), atol=1e-6)
-    assert report["stereo_pairing"] and all(t["stereo_observations"] == FRAMES for t in report["tracks"])
+        np.testing.assert_allclose(hands[side]["uv"], expected.transpose(1, 0, 2, 3), atol=1e-3)  # float32 fisheye rounding
+    assert all(t["stereo_observations"] == FRAMES for t in report["tracks"])
     assert {t["evidence_side"] for t in report["tracks"]} == {"right", "left"}
 
 
-@pytest.mark.parametrize("rig_name", ["esther", "hot3d_quest3"])
+@pytest.mark.parametrize("rig_name", ["esther", "hot3d_quest3", "mixed"])
 def test_detect_clip_writes_a_clip_the_teacher_reads(tmp_path, two_hands, rig_name):
-    rig = cameras.rig_preset(rig_name)
+    rig = mixed_rig() if rig_name == "mixed" else cameras.rig_preset(rig_name)
     left, right = _folders(tmp_path, rig)
     calls: list = []
     report = detect_clip(left, right, rig, tmp_path / "clip", detectors=("truth",), fps=30.0, progress=False,

@@ -10,7 +10,7 @@ from esther_jax import cameras, triangulation
 from esther_jax.cameras import Fisheye624Camera, PinholeCamera, StereoRig
 from esther_jax.triangulation import triangulate, triangulate_stereo
 
-from .helpers import finite_difference_jacobian
+from .helpers import finite_difference_jacobian, mixed_rig
 
 
 def project_rig(rig: StereoRig, points_rig: np.ndarray) -> jnp.ndarray:
@@ -28,9 +28,9 @@ def hand_points(n, rng):
 batched = jax.jit(jax.vmap(triangulate_stereo, in_axes=(None, 0, 0)))
 
 
-@pytest.mark.parametrize("preset", cameras.RIG_PRESETS)
+@pytest.mark.parametrize("preset", [*cameras.RIG_PRESETS, "mixed"])
 def test_triangulating_projections_returns_the_points(preset, x64):
-    rig = cameras.rig_preset(preset)
+    rig = mixed_rig() if preset == "mixed" else cameras.rig_preset(preset)
     rng = np.random.default_rng(0)
     points = hand_points(600, rng)
     T_right_left = np.linalg.inv(np.asarray(rig.T_left_right))
@@ -45,6 +45,8 @@ def test_triangulating_projections_returns_the_points(preset, x64):
     np.testing.assert_allclose(np.asarray(result.point), points, atol=1e-6)
     assert np.max(np.asarray(result.residual_px)) < 1e-6
     assert np.max(np.asarray(result.spread)) < 1e-7
+    over_axes = triangulation.triangulate_rig(rig, uv[:48].reshape(12, 4, 2, 2), jnp.ones((12, 4, 2)))  # any leading axes
+    np.testing.assert_allclose(np.asarray(over_axes.point), points[:48].reshape(12, 4, 3), atol=1e-6)
 
 
 def test_matches_opencv_triangulate_points(x64):

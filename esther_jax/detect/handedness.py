@@ -4,8 +4,8 @@ A detector's left/right label is unreliable (MediaPipe's flips with mirrored inp
 changed between versions), so `assign_hands` decides by evidence, in four steps:
 
 1. **Stereo pairing.** In each frame, every (left-view hand, right-view hand) pair is
-   triangulated keypoint by keypoint with the rig (`triangulation.triangulate_batch`);
-   a pair is the same hand when the median reprojection error of its keypoints is below
+   triangulated keypoint by keypoint with the rig (`triangulation.triangulate_rig`, each
+   view through its own camera: the two may differ in model and image size); a pair is the same hand when the median reprojection error of its keypoints is below
    `pair_tolerance` of the hand box diagonal. Pairs are chosen by minimum total error
    (Hungarian). Unpaired hands stay one-view observations.
 2. **Tracks.** Observations are linked frame to frame (Hungarian on the mean keypoint
@@ -22,9 +22,6 @@ changed between versions), so `assign_hands` decides by evidence, in four steps:
 4. **One hand per side.** Tracks are given their side strongest evidence first; a track
    that overlaps in time with a track already holding its side takes the other side if
    free during its frames, and is dropped otherwise (reported).
-
-Rigs whose two cameras differ in model or image size skip step 1 (each view's hands are
-tracked on their own); the report says so.
 """
 
 import dataclasses
@@ -35,7 +32,7 @@ from jaxtyping import Float
 from scipy.optimize import linear_sum_assignment
 
 from ..cameras import StereoRig
-from ..triangulation import triangulate_batch
+from ..triangulation import triangulate_rig
 from .base import NUM_KEYPOINTS, Candidates
 
 STEREO_WEIGHT = 1.0
@@ -93,7 +90,7 @@ def _stereo_pairs(c: Candidates, rig: StereoRig, tolerance: float) -> tuple[np.n
     T, _, H = c.score.shape
     uv = np.stack(np.broadcast_arrays(c.uv[:, 0, :, None], c.uv[:, 1, None, :]), axis=-2)  # T H H 21 2views 2
     conf = np.stack(np.broadcast_arrays(c.conf[:, 0, :, None], c.conf[:, 1, None, :]), axis=-1)  # T H H 21 2views
-    tri = triangulate_batch(rig.cameras, rig.T_rig_cams, jnp.asarray(np.nan_to_num(uv)), jnp.asarray(conf))
+    tri = triangulate_rig(rig, jnp.asarray(np.nan_to_num(uv)), jnp.asarray(conf))
     residual = np.asarray(tri.residual_px).max(axis=-1)
     used = np.asarray(tri.valid) & np.all(conf > 0, axis=-1)
     enough = used.sum(axis=-1) >= NUM_KEYPOINTS // 2
@@ -120,14 +117,12 @@ def assign_hands(
     and a report of the tracks (side, frames, evidence, stereo observations, dropped).
     """
     T, V, H = c.score.shape
-    paired = rig.left.width == rig.right.width and rig.left.height == rig.right.height and type(rig.left) is type(rig.right)
-    if paired:
-        cost, points = _stereo_pairs(c, rig, pair_tolerance)
-        stereo_chirality = chirality(points)
+    cost, points = _stereo_pairs(c, rig, pair_tolerance)
+    stereo_chirality = chirality(points)
     observations: list[list[_Observation]] = []
     for t in range(T):
         here, used = [], set()
-        if paired and np.isfinite(cost[t]).any():
+        if np.isfinite(cost[t]).any():
             rows, cols = linear_sum_assignment(np.where(np.isfinite(cost[t]), cost[t], 1e9))
             for i, j in zip(rows, cols):
                 if np.isfinite(cost[t, i, j]):
@@ -199,7 +194,5 @@ def assign_hands(
                 out[side]["box"][o.frame, v] = c.box[o.frame, v, k]
                 out[side]["box_score"][o.frame, v] = c.score[o.frame, v, k]
     hands = {name: out[s] for s, name in ((1, "right"), (-1, "left")) if out[s]["box_score"].any()}
-    report = {"stereo_pairing": paired, "tracks": sorted(report_tracks, key=lambda r: (r["first_frame"], r["side"]))}
-    if not paired:
-        report["stereo_pairing_skipped"] = "the rig's cameras differ in model or image size"
+    report = {"tracks": sorted(report_tracks, key=lambda r: (r["first_frame"], r["side"]))}
     return hands, report
