@@ -44,7 +44,8 @@ def test_default_detector_is_noisy_and_confidence_tracks_error():
 
 def test_visibility_agrees_with_the_renderers_depth_buffer():
     """Ground-truth visibility (a splatted depth test of hands, forearms and the held box)
-    against the depth buffer of the rendered scene with everything in it."""
+    against the depth buffer of the rendered scene with everything in it, under the same
+    rule: hidden when a surface lies more than the joint's own depth below the skin in front."""
     rng = synth.clip_rng(7, 1)
     rig = cameras.rig_preset("esther")
     m = motion.sample_clip(rng, rig, 24)
@@ -60,7 +61,7 @@ def test_visibility_agrees_with_the_renderers_depth_buffer():
                 u, v = uv[j]
                 if not (0 <= u < rig.left.width and 0 <= v < rig.left.height) or joints[j, 2] <= 0:
                     continue
-                hidden_by_render = depth[v, u] < joints[j, 2] - 0.03
+                hidden_by_render = depth[v, u] < joints[j, 2] - motion.JOINT_DEPTH_BELOW_SKIN_M[j]
                 agree += m.visibility[side][t, 0, j] != hidden_by_render
                 total += 1
     assert total > 20 and agree / total > 0.85

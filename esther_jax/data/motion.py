@@ -11,8 +11,10 @@ y down, z forward), then expressed in the rig frame of every frame:
   0.25-0.5 m; some clips swing the hand out of one or both views and back. Held-out
   sets can spread the waypoints evenly over another depth range
   (`MotionConfig.depth_sampling`, `depth_range_m`).
-- *Wrist orientation*: palm facing down-inwards with fingers forward (the egocentric
-  view of a working hand), with smooth random deviations of up to ~40 degrees.
+- *Wrist orientation*: carried by the forearm (`wrist_orientations`): the hand continues
+  the forearm from an elbow below the head, palm down and rolled towards thumb-up by
+  about 30 degrees, the wrist flexing and deviating smoothly by a few tens of degrees
+  (the egocentric view of a working hand as a body holds it, forearms entering from below).
 - *Articulation*: keyframes from the built-in model's natural-pose archetypes (grasp,
   release, pinch, point, flat, ...) blended with joint noise, joined by minimum-jerk
   interpolation in anatomical angles and clipped to the joint limits.
@@ -129,11 +131,6 @@ def head_poses(rng: np.random.Generator, T: int, cfg: MotionConfig) -> np.ndarra
     return T_world_rig
 
 
-# rest orientation of a right hand seen from the head: fingers forward (+z), back of the
-# hand up (-y), thumb to the left (-x): model axes (x, y, z) -> rig (-z, -y, -x)
-_R_EGO = np.array([[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]])
-
-
 def wrist_path(rng: np.random.Generator, T: int, cfg: MotionConfig, lateral: float, leave_view: bool) -> np.ndarray:
     """(T, 3) right-hand wrist positions in the world frame (metres)."""
     duration = T / cfg.fps
@@ -154,11 +151,50 @@ def wrist_path(rng: np.random.Generator, T: int, cfg: MotionConfig, lateral: flo
     return path
 
 
-def wrist_orientations(rng: np.random.Generator, T: int, cfg: MotionConfig) -> np.ndarray:
-    """(T, 3, 3) right-hand wrist rotations in the world frame."""
-    deviation = _smooth_noise(rng, T, cfg.fps, 1.0, 3, freqs=(0.1, 0.6)) * np.deg2rad([25.0, 30.0, 20.0])
-    deviation += rng.normal(size=3) * np.deg2rad([15.0, 20.0, 15.0])
-    return np.einsum("tij,jk->tik", _rotation(deviation), _R_EGO)
+def _axis_rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) rotations by `angle` (T,) about unit axes (T, 3) (Rodrigues)."""
+    return _rotation(axis * angle[:, None])
+
+
+def wrist_orientations(rng: np.random.Generator, T: int, cfg: MotionConfig, wrist: np.ndarray, hand_axes: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) right-hand wrist rotations in the world frame, carried by the forearm.
+
+    Args:
+        wrist: (T, 3) the wrist's path (`wrist_path`, world frame, metres).
+        hand_axes: (3, 3) the hand's rest axes in the model frame, as columns: long axis
+            (wrist -> middle knuckle), back-of-hand normal, and their cross product.
+    The forearm runs from `ELBOW_WORLD_M` to the wrist; with the wrist joint at rest the
+    hand continues it, palm down, then rolled about the forearm towards thumb-up
+    (supination). The wrist joint flexes / extends about the hand's across axis and
+    deviates radially / ulnarly about its back normal. Each of the three angles is a
+    per-clip offset plus smooth variation (deg): roll 30 +- 25 (offset) +- 20 (smooth),
+    flexion 0 +- 15 +- 20, deviation 0 +- 8 +- 8: the egocentric view of a working hand,
+    as a body holds it.
+    """
+    mean, offset_sd, smooth_sd = np.deg2rad([30.0, 0.0, 0.0]), np.deg2rad([25.0, 15.0, 8.0]), np.deg2rad([20.0, 20.0, 8.0])
+    roll, flexion, deviation = (mean + rng.normal(size=3) * offset_sd + _smooth_noise(rng, T, cfg.fps, 1.0, 3, freqs=(0.1, 0.6)) * smooth_sd).T
+    along = wrist - ELBOW_WORLD_M
+    along /= np.linalg.norm(along, axis=-1, keepdims=True)
+    up = np.array([0.0, -1.0, 0.0])
+    back = up - (along @ up)[:, None] * along
+    back /= np.linalg.norm(back, axis=-1, keepdims=True)
+    back = np.einsum("tij,tj->ti", _axis_rotation(along, roll), back)  # a right hand's thumb turns up
+    across = np.cross(along, back)
+    forearm = np.stack([along, back, across], axis=-1)  # (T, 3, 3) columns: the hand's axes at rest
+    joint = np.einsum("tij,tjk->tik", _axis_rotation(np.broadcast_to([0.0, 0.0, 1.0], (T, 3)), flexion),
+                      _axis_rotation(np.broadcast_to([0.0, 1.0, 0.0], (T, 3)), deviation))  # fmt: skip
+    return np.einsum("tij,tjk,lk->til", forearm, joint, hand_axes)
+
+
+def hand_axes(model: mano.ManoModel) -> np.ndarray:
+    """(3, 3) a hand model's rest axes in its frame, as columns: wrist -> middle knuckle,
+    the back-of-hand normal (model +y, orthogonalised; the palm faces -y), their cross product."""
+    joints = np.asarray(mano.forward_joints(model, mano.ManoParams.zeros()), np.float64)
+    long = joints[9] - joints[0]
+    long /= np.linalg.norm(long)
+    back = np.array([0.0, 1.0, 0.0]) - long[1] * long
+    back /= np.linalg.norm(back)
+    return np.stack([long, back, np.cross(long, back)], axis=-1)
 
 
 def articulation(rng: np.random.Generator, T: int, cfg: MotionConfig, frames: np.ndarray) -> np.ndarray:
@@ -227,6 +263,7 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
     models = {"right": mano.load_builtin("right"), "left": mano.load_builtin("left")}
     right = models["right"]
     frames = np.asarray(mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right), np.float64)
+    axes = hand_axes(right)
     sides = ["right", "left"] if rng.uniform() < cfg.two_hands_probability else [str(rng.choice(["right", "left"]))]
     betas = rng.normal(size=10) * cfg.shape_sd
     T_world_rig = head_poses(rng, T, cfg)
@@ -238,7 +275,7 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
     for side in sides:
         # sampled as a right hand (on the right of the body); a left hand is its mirror image
         wrist = wrist_path(rng, T, cfg, 0.09 if side == "right" else 0.07, leave and side == sides[-1])
-        R_world = wrist_orientations(rng, T, cfg)
+        R_world = wrist_orientations(rng, T, cfg, wrist, axes)
         hand_pose = articulation(rng, T, cfg, frames)
         if side == "left":
             wrist = wrist * np.array([-1.0, 1.0, 1.0])
@@ -262,7 +299,7 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
             in_world = np.einsum("tij,kj->tki", R_world, corners - rest_wrist) + wrist[:, None]
             object_corners = _to_rig(T_rig_world, in_world)
     forearms = _forearms(hands, T_rig_world)
-    visibility, onscreen = _visibility(rig, hands, forearms, object_corners, object_faces)
+    visibility, onscreen = _visibility(rig, hands, np.asarray(right.faces), forearms, object_corners, object_faces)
     return ClipMotion(rig, cfg.fps, T_world_rig, hands, visibility, onscreen, object_corners, object_faces, betas, forearms)
 
 
@@ -342,9 +379,13 @@ def _forearms(hands: dict[str, HandTrack], T_rig_world: np.ndarray) -> dict[str,
 
 # ----------------------------------------------------------------------------- visibility
 
-_SPLAT_CELL_PX = 8.0
-"""Cell size of the splatted depth buffer used for occlusion (about the vertex spacing of a hand at 0.3 m)."""
-_SURFACE_MARGIN_M = np.array([0.025, 0.025, 0.016, 0.014, 0.012] + [0.022, 0.016, 0.014, 0.012] * 4)
+_SPLAT_CELL_PX = 5.0
+"""Cell size of the splatted depth buffer used for occlusion (px). The hands are splatted
+densely (`_surface_points`: about 3 mm apart), so that cells of a hand at 0.25 m hold
+surface points and holes do not let joints through."""
+_FACE_SAMPLES = np.array([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+"""Barycentric points per triangle added to a hand's vertices for the depth test."""
+JOINT_DEPTH_BELOW_SKIN_M = np.array([0.025, 0.025, 0.016, 0.014, 0.012] + [0.022, 0.016, 0.014, 0.012] * 4)
 """A joint lies inside the hand: it counts as visible when no surface is more than its
 own depth below the skin (palm joints deeper than finger joints) in front of it, i.e.
 only other parts of the hand, the other hand or the object occlude it."""
@@ -374,7 +415,7 @@ def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -
 
     Occluder points are splatted into cells of `_SPLAT_CELL_PX` px, keeping the nearest
     depth in each cell; a joint is hidden when the nearest surface in its cell is more
-    than `_SURFACE_MARGIN_M` (per joint) in front of it.
+    than `JOINT_DEPTH_BELOW_SKIN_M` (per joint) in front of it.
     """
     in_image = camera.is_visible(joints_cam)
     cells_w = int(math.ceil(camera.width / _SPLAT_CELL_PX)) + 2
@@ -389,7 +430,13 @@ def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -
     jx = jnp.clip(j_cell[:, 0] + 1, 0, cells_w - 1)
     jy = jnp.clip(j_cell[:, 1] + 1, 0, cells_h - 1)
     front = nearest[jy, jx]
-    return in_image & (front > j_depth - jnp.asarray(_SURFACE_MARGIN_M, j_depth.dtype))
+    return in_image & (front > j_depth - jnp.asarray(JOINT_DEPTH_BELOW_SKIN_M, j_depth.dtype))
+
+
+def _surface_points(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(T, V + 4 F, 3) a hand's vertices and four points inside each triangle (depth test)."""
+    inside = np.einsum("kc,tfcd->tfkd", _FACE_SAMPLES, vertices[:, faces])
+    return np.concatenate([vertices, inside.reshape(len(vertices), -1, 3)], axis=1)
 
 
 def _forearm_points(forearm: np.ndarray, factor: int = 4) -> np.ndarray:
@@ -406,8 +453,8 @@ def _forearm_points(forearm: np.ndarray, factor: int = 4) -> np.ndarray:
     return points.reshape(T, -1, 3)
 
 
-def _visibility(rig: StereoRig, hands: dict[str, HandTrack], forearms: dict[str, np.ndarray], object_corners, object_faces):
-    occluders = [np.asarray(h.vertices) for h in hands.values()]
+def _visibility(rig: StereoRig, hands: dict[str, HandTrack], hand_faces: np.ndarray, forearms: dict[str, np.ndarray], object_corners, object_faces):
+    occluders = [_surface_points(np.asarray(h.vertices), hand_faces) for h in hands.values()]
     occluders += [_forearm_points(forearms[side]) for side in hands]
     if object_corners is not None:
         occluders.append(_object_points(object_corners, object_faces))
