@@ -381,8 +381,8 @@ def _forearms(hands: dict[str, HandTrack], T_rig_world: np.ndarray) -> dict[str,
 
 _SPLAT_CELL_PX = 5.0
 """Cell size of the splatted depth buffer used for occlusion (px). The hands are splatted
-densely (`_surface_points`: about 3 mm apart), so that cells of a hand at 0.25 m hold
-surface points and holes do not let joints through."""
+densely (`_surface_points`: about 2.5 mm apart), so that on the paper's rig (623 px focal)
+the cells of a hand from 0.3 m on hold surface points and no hole lets a hidden joint through."""
 _FACE_SAMPLES = np.array([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
 """Barycentric points per triangle added to a hand's vertices for the depth test."""
 JOINT_DEPTH_BELOW_SKIN_M = np.array([0.025, 0.025, 0.016, 0.014, 0.012] + [0.022, 0.016, 0.014, 0.012] * 4)
@@ -391,7 +391,10 @@ own depth below the skin (palm joints deeper than finger joints) in front of it,
 only other parts of the hand, the other hand or the object occlude it."""
 
 
-def _object_points(corners: np.ndarray, faces: np.ndarray, per_side: int = 12) -> np.ndarray:
+_OBJECT_POINTS_PER_SIDE = 12
+
+
+def _object_points(corners: np.ndarray, faces: np.ndarray, per_side: int = _OBJECT_POINTS_PER_SIDE) -> np.ndarray:
     """(T, n, 3) points densely covering the box faces (for the depth test)."""
     s = (np.arange(per_side) + 0.5) / per_side
     u, v = np.meshgrid(s, s)
@@ -410,18 +413,20 @@ def _occluders_depth(camera, points_cam: jax.Array) -> tuple[jax.Array, jax.Arra
 
 
 @eqx.filter_jit
-def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -> jax.Array:
-    """(21,) bool: inside the image and not behind an occluder splat (one frame, one view).
+def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array, occluder_mask: jax.Array, below_skin: jax.Array) -> jax.Array:
+    """(J,) bool: inside the image and not behind an occluder splat (one frame, one view;
+    the joints of every hand at once, so the splat is made once).
 
-    Occluder points are splatted into cells of `_SPLAT_CELL_PX` px, keeping the nearest
+    Occluder points (those `occluder_mask` keeps) are splatted into cells of `_SPLAT_CELL_PX` px, keeping the nearest
     depth in each cell; a joint is hidden when the nearest surface in its cell is more
-    than `JOINT_DEPTH_BELOW_SKIN_M` (per joint) in front of it.
+    than `below_skin` (per joint, `JOINT_DEPTH_BELOW_SKIN_M`) in front of it.
     """
     in_image = camera.is_visible(joints_cam)
     cells_w = int(math.ceil(camera.width / _SPLAT_CELL_PX)) + 2
     cells_h = int(math.ceil(camera.height / _SPLAT_CELL_PX)) + 2
     occ_cell, occ_depth = _occluders_depth(camera, occluders_cam)
-    inside = (occ_depth > 1e-3) & (occ_cell[:, 0] >= 0) & (occ_cell[:, 0] < cells_w - 2) & (occ_cell[:, 1] >= 0) & (occ_cell[:, 1] < cells_h - 2)
+    in_grid = (occ_cell[:, 0] >= 0) & (occ_cell[:, 0] < cells_w - 2) & (occ_cell[:, 1] >= 0) & (occ_cell[:, 1] < cells_h - 2)
+    inside = occluder_mask & (occ_depth > 1e-3) & in_grid
     flat = (occ_cell[:, 1] + 1) * cells_w + (occ_cell[:, 0] + 1)
     big = jnp.asarray(1e9, occ_depth.dtype)
     buffer = jnp.full(cells_w * cells_h, big).at[jnp.where(inside, flat, 0)].min(jnp.where(inside, occ_depth, big))
@@ -430,7 +435,7 @@ def _joint_visibility(camera, joints_cam: jax.Array, occluders_cam: jax.Array) -
     jx = jnp.clip(j_cell[:, 0] + 1, 0, cells_w - 1)
     jy = jnp.clip(j_cell[:, 1] + 1, 0, cells_h - 1)
     front = nearest[jy, jx]
-    return in_image & (front > j_depth - jnp.asarray(JOINT_DEPTH_BELOW_SKIN_M, j_depth.dtype))
+    return in_image & (front > j_depth - below_skin)
 
 
 def _surface_points(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -454,20 +459,32 @@ def _forearm_points(forearm: np.ndarray, factor: int = 4) -> np.ndarray:
 
 
 def _visibility(rig: StereoRig, hands: dict[str, HandTrack], hand_faces: np.ndarray, forearms: dict[str, np.ndarray], object_corners, object_faces):
-    occluders = [_surface_points(np.asarray(h.vertices), hand_faces) for h in hands.values()]
-    occluders += [_forearm_points(forearms[side]) for side in hands]
+    """Per-view per-joint visibility and the on-screen flag of each hand. The occluders and
+    joints are padded to two hands, two forearms and a box (masked points), so every clip
+    of a length reuses one compiled program."""
+    T = len(next(iter(hands.values())).joints)
+    parts = {side: (_surface_points(np.asarray(h.vertices), hand_faces), _forearm_points(forearms[side])) for side, h in hands.items()}
+    surface, forearm = (p.shape[1] for p in next(iter(parts.values())))
+    hand_slots = [slice(i * surface, (i + 1) * surface) for i in range(2)]
+    arm_slots = [slice(2 * surface + i * forearm, 2 * surface + (i + 1) * forearm) for i in range(2)]
+    box_slot = slice(2 * (surface + forearm), None)
+    occ_rig = np.zeros((T, 2 * (surface + forearm) + 6 * _OBJECT_POINTS_PER_SIDE**2, 3))
+    occ_mask = np.zeros(occ_rig.shape[1], bool)
+    for hand_slot, arm_slot, (hand_points, arm_points) in zip(hand_slots, arm_slots, parts.values()):
+        occ_rig[:, hand_slot], occ_rig[:, arm_slot] = hand_points, arm_points
+        occ_mask[hand_slot] = occ_mask[arm_slot] = True
     if object_corners is not None:
-        occluders.append(_object_points(object_corners, object_faces))
-    occ_rig = np.concatenate(occluders, axis=1)
-    per_frame = jax.vmap(_joint_visibility, in_axes=(None, 0, 0))
-    visibility, onscreen = {}, {}
+        occ_rig[:, box_slot], occ_mask[box_slot] = _object_points(object_corners, object_faces), True
+    sides = list(hands)
+    joints = np.zeros((T, 2 * 21, 3))
+    for i, side in enumerate(sides):
+        joints[:, 21 * i : 21 * (i + 1)] = np.asarray(hands[side].joints)
     dtype = jnp.result_type(float)
-    occ_left, occ_right = rig.to_views(jnp.asarray(occ_rig, dtype))
-    for side, h in hands.items():
-        joints = np.asarray(h.joints)
-        joints_left, joints_right = rig.to_views(jnp.asarray(joints, dtype))
-        left = per_frame(rig.left, joints_left, occ_left)
-        right = per_frame(rig.right, joints_right, occ_right)
-        visibility[side] = np.stack([np.asarray(left), np.asarray(right)], axis=1)
-        onscreen[side] = np.asarray(jax.vmap(metrics.onscreen, in_axes=(0, None))(jnp.asarray(joints, dtype), rig))
+    below_skin = jnp.asarray(np.tile(JOINT_DEPTH_BELOW_SKIN_M, 2), dtype)
+    occ_views, joint_views = rig.to_views(jnp.asarray(occ_rig, dtype)), rig.to_views(jnp.asarray(joints, dtype))
+    per_frame = jax.vmap(_joint_visibility, in_axes=(None, 0, 0, None, None))
+    seen = np.stack([np.asarray(per_frame(camera, joint_views[v], occ_views[v], jnp.asarray(occ_mask), below_skin))
+                     for v, camera in enumerate((rig.left, rig.right))], axis=1)  # fmt: skip
+    visibility = {side: seen[:, :, 21 * i : 21 * (i + 1)] for i, side in enumerate(sides)}
+    onscreen = {side: np.asarray(jax.vmap(metrics.onscreen, in_axes=(0, None))(jnp.asarray(hands[side].joints, dtype), rig)) for side in sides}
     return visibility, onscreen
