@@ -57,7 +57,7 @@ def _release_compiled_programs():
 _MODULE_SECONDS = {
     "test_train": 260, "test_model": 230, "test_fitting": 200, "test_studies": 150, "test_synth": 100, "test_readme": 65,
     "test_triangulation": 60, "test_mano": 50, "test_cameras": 50, "test_teacher_validation": 45, "test_cli": 35,
-    "test_detect": 40, "test_hot3d_import": 40, "test_rotations": 35, "test_baselines": 30, "test_attention": 20,
+    "test_detect": 70, "test_hot3d_import": 40, "test_rotations": 35, "test_baselines": 30, "test_attention": 20,
 }  # fmt: skip
 
 

@@ -47,6 +47,10 @@ def test_triangulating_projections_returns_the_points(preset, x64):
     assert np.max(np.asarray(result.spread)) < 1e-7
     over_axes = triangulation.triangulate_rig(rig, uv[:48].reshape(12, 4, 2, 2), jnp.ones((12, 4, 2)))  # any leading axes
     np.testing.assert_allclose(np.asarray(over_axes.point), points[:48].reshape(12, 4, 3), atol=1e-6)
+    rays, ok = rig.unproject_with_validity(jnp.moveaxis(uv, 1, 0))  # each view through its own camera
+    assert np.all(np.asarray(ok))
+    in_views = rig.to_views(jnp.asarray(points))  # (2, N, 3)
+    np.testing.assert_allclose(np.asarray(rays), np.asarray(in_views / in_views[..., 2:]), atol=1e-6)
 
 
 def test_matches_opencv_triangulate_points(x64):

@@ -5,7 +5,8 @@ changed between versions), so `assign_hands` decides by evidence, in four steps:
 
 1. **Stereo pairing.** In each frame, every (left-view hand, right-view hand) pair is
    triangulated keypoint by keypoint with the rig (`triangulation.triangulate_rig`, each
-   view through its own camera: the two may differ in model and image size); a pair is the same hand when the median reprojection error of its keypoints is below
+   view through its own camera: the two may differ in model and image size); a pair is
+   the same hand when the median reprojection error of its keypoints is below
    `pair_tolerance` of the hand box diagonal. Pairs are chosen by minimum total error
    (Hungarian). Unpaired hands stay one-view observations.
 2. **Tracks.** Observations are linked frame to frame (Hungarian on the mean keypoint
