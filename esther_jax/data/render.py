@@ -60,6 +60,10 @@ class Mesh:
     left hand passes the right hand's rest vertices, the ids correspond): skin details
     are painted there. None for other surfaces."""
 
+    def __post_init__(self):
+        if self.material not in MATERIALS:
+            raise ValueError(f"unknown material {self.material!r}; expected one of {MATERIALS}")
+
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
@@ -468,7 +472,7 @@ def render_view(
         f_ids = face[hit]
         lam = bary[hit]
         corners = faces[f_ids]
-        interpolate = lambda values: np.einsum("pk,pkc->pc", lam, values[corners])  # noqa: E731
+        interpolate = lambda values, sel=slice(None), offset=0: np.einsum("pk,pkc->pc", lam[sel], values[corners[sel] - offset])  # noqa: E731
         n = interpolate(normals)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
         points = interpolate(verts)
@@ -477,15 +481,12 @@ def render_view(
         skin = np.array([m.material == "skin" for m in meshes])[mesh_of]
         gloss = np.zeros(len(f_ids))
         for i, m in enumerate(meshes):
-            if m.material not in MATERIALS:
-                raise ValueError(f"unknown material {m.material!r}; expected one of {MATERIALS}")
             here = mesh_of == i
             if not here.any():
                 continue
             if m.rest is not None:
-                rest_normals = _hand_rest()["normals"]
-                rest = np.einsum("pk,pkc->pc", lam[here], m.rest[faces[f_ids[here]] - offsets[i]])
-                rn = np.einsum("pk,pkc->pc", lam[here], rest_normals[faces[f_ids[here]] - offsets[i]])
+                rest = interpolate(m.rest, here, offsets[i])
+                rn = interpolate(_hand_rest()["normals"], here, offsets[i])
                 rn /= np.maximum(np.linalg.norm(rn, axis=1, keepdims=True), 1e-9)
                 albedo[here], gloss[here] = hand_skin_albedo(rest, rn, m.albedo)
             elif m.material == "skin":
