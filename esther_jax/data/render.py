@@ -20,8 +20,13 @@ find the rendered hands, `benchmarks/detect.py`):
 - *Lighting*: a key light of random direction and colour temperature, a sky / ground
   hemisphere fill, and screen-space ambient occlusion from the depth buffer, which
   darkens the gaps between fingers and where a finger passes in front of the palm.
-- *Camera*: exposure metered on the scene (centre-weighted towards the hand), slight
-  optical blur (anti-aliasing).
+- *Camera*: surfaces are lit in linear light and encoded with the display gamma
+  (`DISPLAY_GAMMA`: albedos are display values, so an albedo a reflects a ** gamma, and
+  the exposed radiance r is written as r ** (1 / gamma), as a camera's tone curve does:
+  shading falls off softly instead of sinking half-lit skin into black); exposure
+  metered on the scene (centre-weighted towards the hand); slight optical blur
+  (anti-aliasing). The background texture is already a display image (exposed, not
+  re-encoded).
 """
 
 import dataclasses
@@ -40,6 +45,8 @@ SKIN_TONES = np.array(
 ) / 255.0
 """sRGB albedos from very light to very dark skin (sampled and jittered per clip)."""
 BACKGROUND_DEPTH_M = 1.5
+DISPLAY_GAMMA = 2.2
+"""Display encoding: linear radiance r is written as r ** (1 / DISPLAY_GAMMA) (module docstring, *Camera*)."""
 MATERIALS = ("matte", "skin")
 
 
@@ -425,8 +432,9 @@ def ambient_occlusion(depth: np.ndarray, scale_px: float) -> np.ndarray:
 
 
 def _shade(scene: Scene, n: np.ndarray, points: np.ndarray, albedo: np.ndarray, skin: np.ndarray, gloss: np.ndarray) -> np.ndarray:
-    """(P, 3) radiance of surface pixels: hemisphere fill + key light, wrap diffuse with a
-    red-shifted terminator on skin, Blinn-Phong sheen (skin) and gloss (nails)."""
+    """(P, 3) linear radiance of surface pixels (`albedo` linear): hemisphere fill + key
+    light, wrap diffuse with a red-shifted terminator on skin, Blinn-Phong sheen (skin) and
+    gloss (nails)."""
     view = -points / np.maximum(np.linalg.norm(points, axis=1, keepdims=True), 1e-9)
     n = np.where((np.einsum("pk,pk->p", n, view) < 0)[:, None], -n, n)  # seen from inside: shade the side we see
     up = np.array([0.0, -1.0, 0.0])
@@ -455,7 +463,7 @@ def render_view(
         meshes: the surfaces, in this camera's frame.
         rays: `_pixel_rays(camera)`, when rendering many frames of one camera.
     """
-    image = render_background(scene, camera, T_world_cam, rays)
+    image = render_background(scene, camera, T_world_cam, rays) * scene.exposure
     W, H = camera.width, camera.height
     depth = np.full((H, W), np.inf, np.float32)
     hit = np.zeros((H, W), bool)
@@ -492,8 +500,9 @@ def render_view(
             elif m.material == "skin":
                 albedo[here] *= _mottle(points[here])[:, None]
         ao = ambient_occlusion(depth, 0.01 * _pixels_per_metre_at_unit_depth(uv, verts, faces) / float(np.median(depth[hit])))
-        image[hit] = _shade(scene, n, points, albedo, skin, gloss) * ao[hit][:, None]
-    image = cv2.GaussianBlur(np.clip(image * scene.exposure, 0.0, 1.0).astype(np.float32), (0, 0), 0.6)
+        radiance = _shade(scene, n, points, albedo**DISPLAY_GAMMA, skin, gloss) * ao[hit][:, None]
+        image[hit] = (scene.exposure * radiance) ** (1.0 / DISPLAY_GAMMA)
+    image = cv2.GaussianBlur(np.clip(image, 0.0, 1.0).astype(np.float32), (0, 0), 0.6)
     out = (image * 255.0 + 0.5).astype(np.uint8)
     if scene.grayscale:
         out = cv2.cvtColor(out, cv2.COLOR_RGB2GRAY)
