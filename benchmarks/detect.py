@@ -1,7 +1,7 @@
 """The real detector on pixels with exact ground truth (issue 15, point 3), side by side
 with the simulated detector.
 
-    python benchmarks/detect.py [--crop-clips 12] [--crop-frames 4] [--clips 3] [--frames 16] [--rig esther] [--out DIR]
+    python benchmarks/detect.py [--crop-clips 12] [--crop-frames 4] [--clips 8] [--frames 16] [--rig esther] [--out DIR]
 
 1. Real-photo control (optional: skipped unless the MediaPipe reference photos with their
    published expected keypoints, tensorflow/tfjs-models' hand-pose-detection test data, sit
@@ -27,7 +27,7 @@ with the simulated detector.
    detector's keypoints of the same clips.
 
 Everything runs on the CPU, one process; the synthetic clips are made in `--out`
-(default: a temporary folder). About 4 minutes on a 2-core machine.
+(default: a temporary folder). About 6 minutes on a 2-core machine.
 """
 
 import argparse
@@ -193,7 +193,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--crop-clips", type=int, default=12, help="clips for the hand-centred crops")
     parser.add_argument("--crop-frames", type=int, default=4, help="frames per crop clip")
-    parser.add_argument("--clips", type=int, default=3, help="clips for the end-to-end run")
+    parser.add_argument("--clips", type=int, default=8, help="clips for the end-to-end run")
     parser.add_argument("--frames", type=int, default=16, help="frames per end-to-end clip")
     parser.add_argument("--rig", default="esther")
     parser.add_argument("--out", help="work folder (default: temporary)")
