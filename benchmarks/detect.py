@@ -24,10 +24,11 @@ with the simulated detector.
 4. Full frames end to end: `detect_clip` (MediaPipe, video mode) on the rendered videos of
    `--clips` clips of `--frames` frames, then the teacher; coverage (labelled over on-screen hand-frames), P-MPJPE and
    wrist error (mm) against the ground truth, next to the teacher on the simulated
-   detector's keypoints of the same clips.
+   detector's keypoints of the same clips; and where the on-screen hand-frames went:
+   found under their own side, only under the other (handedness swapped), or not found.
 
 Everything runs on the CPU, one process; the synthetic clips are made in `--out`
-(default: a temporary folder). About 6 minutes on a 2-core machine.
+(default: a temporary folder). About 5 minutes on a 2-core machine.
 """
 
 import argparse
@@ -169,6 +170,37 @@ def _label_scores(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path) -> d
             "wrist_mm": float(np.mean(w)) if w else None, "hand_frames": labelled}  # fmt: skip
 
 
+def _where_hands_went(clip_dirs: list[pathlib.Path], detected_root: pathlib.Path) -> dict:
+    """Each on-screen ground-truth hand-frame, by what `detect_clip` made of it: found under
+    its own side in at least one view (median keypoint error under a quarter of its
+    projected box in that view), found only under the other side (handedness swapped), or
+    not found."""
+    counts = {"own_side": 0, "other_side_only": 0, "not_found": 0}
+    for clip in clip_dirs:
+        rig = StereoRig.from_json(clip / "rig.json")
+        for side, other in zip(clips.SIDES, clips.SIDES[::-1]):
+            gt_path = clips.hand_file(clip, side, "gt")
+            if not gt_path.is_file():
+                continue
+            gt = clips.load_npz(gt_path, "gt")
+            truth = np.asarray(rig.project(jnp.asarray(gt["joints"]))).transpose(1, 0, 2, 3)  # (T, 2, 21, 2)
+            size = np.linalg.norm(truth.max(axis=-2) - truth.min(axis=-2), axis=-1)  # (T, 2)
+
+            def found(name: str) -> np.ndarray:
+                path = clips.hand_file(detected_root / clip.name, name, "keypoints")
+                if not path.is_file():
+                    return np.zeros(len(truth), bool)
+                keypoints = clips.load_npz(path, "keypoints")  # uv (D, T, 2, 21, 2), box_score (D, T, 2)
+                error = np.median(np.linalg.norm(keypoints["uv"] - truth[None], axis=-1), axis=-1)  # (D, T, 2)
+                return ((keypoints["box_score"] > 0) & (error < 0.25 * size[None])).any(axis=(0, 2))
+
+            own, swapped, onscreen = found(side), found(other), gt["onscreen"]
+            counts["own_side"] += int((onscreen & own).sum())
+            counts["other_side_only"] += int((onscreen & swapped & ~own).sum())
+            counts["not_found"] += int((onscreen & ~own & ~swapped).sum())
+    return counts
+
+
 def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path) -> dict:
     detected = []
     frames_with_hands = 0
@@ -177,7 +209,7 @@ def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path) -> dict:
         report = detect_clip(clip / "video" / "left.mp4", clip / "video" / "right.mp4", clip / "rig.json", out, progress=False)
         frames_with_hands += report["frames_with_hands"]["mediapipe"]
         detected.append(out)
-    rows = {"mediapipe_frames_with_hands": frames_with_hands}
+    rows = {"mediapipe_frames_with_hands": frames_with_hands, "hand_frames": _where_hands_went(clip_dirs, work / "detected")}
     with_keypoints = [c for c in detected if any(clips.hand_file(c, s, "keypoints").is_file() for s in clips.SIDES)]
     if with_keypoints:
         label_clips(with_keypoints, work / "labels_mediapipe")
@@ -220,7 +252,10 @@ def main() -> None:
     for tone, row in canonical_views().items():
         print(f"canonical views, {tone} skin: {row['detected']}/{row['views']} detected, median 2D error {px(row['median_error_px'])}")
     rows = end_to_end(clip_dirs, work)
-    print(f"full frames, MediaPipe video mode: hands in {rows['mediapipe_frames_with_hands']} frames")
+    went = rows["hand_frames"]
+    print(f"full frames, MediaPipe video mode: hands in {rows['mediapipe_frames_with_hands']} frames; of "
+          f"{sum(went.values())} on-screen hand-frames, {went['own_side']} found under their own side, "
+          f"{went['other_side_only']} only under the other side (handedness swapped), {went['not_found']} not found")  # fmt: skip
     print("| keypoints | coverage | P-MPJPE (mm) | wrist (mm) |\n|---|---|---|---|")
     for name in ("mediapipe", "simulated"):
         r = rows[name]
