@@ -34,7 +34,7 @@ What MediaPipe returns, and what we derive from it:
   (`handedness.chirality`), which follows the image content, mirrored or not.
 - The wrist is MediaPipe's own: on renders of the built-in hand (`benchmarks/detect.py`)
   it sits distal of the MANO-style wrist joint, 14 mm on average in frontal views and
-  15 px median on 224 px egocentric crops (fingers: about 5 px). We pass it on unchanged
+  about 15 px median on 224 px egocentric crops (fingers: 5 to 7 px). We pass it on unchanged
   (no correction learnt from our own renders), so the teacher fits it as given.
 """
 
