@@ -25,8 +25,8 @@ find the rendered hands, `benchmarks/detect.py`):
   the exposed radiance r is written as r ** (1 / gamma), as a camera's tone curve does:
   shading falls off softly instead of sinking half-lit skin into black); exposure
   metered on the scene (centre-weighted towards the hand); slight optical blur
-  (anti-aliasing). The background texture is already a display image (exposed, not
-  re-encoded).
+  (anti-aliasing). The background texture is a display image seen by the same camera:
+  exposure scales it by exposure ** (1 / gamma), as it scales the encoded hand.
 """
 
 import dataclasses
@@ -463,7 +463,7 @@ def render_view(
         meshes: the surfaces, in this camera's frame.
         rays: `_pixel_rays(camera)`, when rendering many frames of one camera.
     """
-    image = render_background(scene, camera, T_world_cam, rays) * scene.exposure
+    image = render_background(scene, camera, T_world_cam, rays) * scene.exposure ** (1.0 / DISPLAY_GAMMA)
     W, H = camera.width, camera.height
     depth = np.full((H, W), np.inf, np.float32)
     hit = np.zeros((H, W), bool)
