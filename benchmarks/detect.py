@@ -68,11 +68,18 @@ def real_photo_control() -> dict | None:
     return {"hands_found": len(hands), "hands_expected": len(expected), "worst_keypoint_error_px": float(worst)}
 
 
+def found_hand(uv: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Whether detected keypoints `uv` (..., 21, 2) are the hand whose projected ground truth
+    is `truth` (..., 21, 2): median keypoint error under a quarter of the longer side of
+    the truth's box (a detection of the other hand, or of nothing in particular, is not)."""
+    error = np.median(np.linalg.norm(uv - truth, axis=-1), axis=-1)
+    return error < 0.25 * (truth.max(axis=-2) - truth.min(axis=-2)).max(axis=-1)
+
+
 def crop_detection(clip_dirs: list[pathlib.Path], padding: float) -> dict:
     """MediaPipe on a CROP px crop around every on-screen, in-view hand (its projected
     ground-truth keypoints' box, `padding` x its longer side). The hand counts as found when
-    a detection's median keypoint error is under a quarter of the hand box's longer side
-    (a detection of the other hand, or of nothing in particular, does not count)."""
+    a detection is it (`found_hand`)."""
     found, total, missed, errors, per_keypoint = 0, 0, 0, [], []
     with MediaPipeHands(video=False) as detector:
         for clip in clip_dirs:
@@ -94,8 +101,9 @@ def crop_detection(clip_dirs: list[pathlib.Path], padding: float) -> dict:
                         hands = detector.detect(image)
                         total += 1
                         missed += not hands
-                        distances = min((np.linalg.norm(h.uv - truth, axis=-1) for h in hands), key=np.median, default=None)
-                        if distances is not None and np.median(distances) < 0.25 * CROP / padding:
+                        best = min(hands, key=lambda h: np.median(np.linalg.norm(h.uv - truth, axis=-1)), default=None)
+                        if best is not None and found_hand(best.uv, truth):
+                            distances = np.linalg.norm(best.uv - truth, axis=-1)
                             found += 1
                             errors.append(np.median(distances))
                             per_keypoint.append(distances)
@@ -172,9 +180,8 @@ def _label_scores(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path) -> d
 
 def _where_hands_went(clip_dirs: list[pathlib.Path], detected_root: pathlib.Path) -> dict:
     """Each on-screen ground-truth hand-frame, by what `detect_clip` made of it: found under
-    its own side in at least one view (median keypoint error under a quarter of its
-    projected box in that view), found only under the other side (handedness swapped), or
-    not found."""
+    its own side in at least one view (`found_hand` in that view), found only under the other
+    side (handedness swapped), or not found."""
     counts = {"own_side": 0, "other_side_only": 0, "not_found": 0}
     for clip in clip_dirs:
         rig = StereoRig.from_json(clip / "rig.json")
@@ -184,15 +191,13 @@ def _where_hands_went(clip_dirs: list[pathlib.Path], detected_root: pathlib.Path
                 continue
             gt = clips.load_npz(gt_path, "gt")
             truth = np.asarray(rig.project(jnp.asarray(gt["joints"]))).transpose(1, 0, 2, 3)  # (T, 2, 21, 2)
-            size = np.linalg.norm(truth.max(axis=-2) - truth.min(axis=-2), axis=-1)  # (T, 2)
 
             def found(name: str) -> np.ndarray:
                 path = clips.hand_file(detected_root / clip.name, name, "keypoints")
                 if not path.is_file():
                     return np.zeros(len(truth), bool)
                 keypoints = clips.load_npz(path, "keypoints")  # uv (D, T, 2, 21, 2), box_score (D, T, 2)
-                error = np.median(np.linalg.norm(keypoints["uv"] - truth[None], axis=-1), axis=-1)  # (D, T, 2)
-                return ((keypoints["box_score"] > 0) & (error < 0.25 * size[None])).any(axis=(0, 2))
+                return ((keypoints["box_score"] > 0) & found_hand(keypoints["uv"], truth[None])).any(axis=(0, 2))
 
             own, swapped, onscreen = found(side), found(other), gt["onscreen"]
             counts["own_side"] += int((onscreen & own).sum())
