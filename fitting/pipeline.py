@@ -185,7 +185,7 @@ def label_hand(
         (labels, quality): the labels.npz arrays and the quality.json content.
     """
     D, T = check_keypoints(keypoints, fps)
-    timings = {}
+    timings = {}  # seconds per stage, each stage waited for (JAX dispatches asynchronously)
     t0 = time.perf_counter()
     L = bucket_length(T)
     dtype = jnp.result_type(float)
@@ -208,7 +208,7 @@ def label_hand(
     fused, evidence = _prepare(model, rig_t, dev["uv"], dev["conf"], dev["box"], dev["box_score"])
     seen, observed, stereo = _observed(evidence, config.min_joints_per_view)
     frame_valid = jnp.arange(L) < T
-    observed, stereo = observed & frame_valid, stereo & frame_valid
+    observed, stereo = jax.block_until_ready((observed & frame_valid, stereo & frame_valid))
     timings["fuse_filter_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -220,6 +220,7 @@ def label_hand(
         problem, data, stages.start_fits(init, pose0, zeros), stereo, observed,
         frames=config.shape_lock_frames, rounds=config.shape_lock_rounds, **solver,
     )  # fmt: skip
+    jax.block_until_ready(lock)
     timings["shape_lock_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -231,11 +232,12 @@ def label_hand(
     problem = _problem(model, rig_t, weights, betas, fps_t)
     init, _ = _start(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
-    fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
+    fits = jax.block_until_ready(stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver))
     timings["fit_frames_s"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
     fits = stages.refine_motion(problem, data, fits, observed, sweeps=config.motion_sweeps, window=config.window, stride=config.stride, **solver)
+    jax.block_until_ready(fits)
     timings["refine_motion_s"] = time.perf_counter() - t3
 
     t4 = time.perf_counter()

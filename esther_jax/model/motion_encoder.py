@@ -8,6 +8,13 @@ instead of F (it is distinct from the stereo encoder's view-mask token); the flo
 is never masked. Outputs: Z [T, 21, D], z_root [T, D], an on-screen logit per frame, and
 the auxiliary reconstructions read at masked positions in training: canonical
 (wrist-relative) joints, MANO pose (6D per joint) and root (wrist) velocity.
+
+The per-frame heads (on-screen, pose) read the frame's own joint tokens Z_t, pooled.
+z_root enters every frame as the same learned token plus its time embedding, so it
+learns about its own frame only through attention; read by the on-screen head it left
+blanked frames indistinguishable from their neighbours (the gate then emitted 99 % of
+the off-screen frames of appendix L's stress test). Z_t carries its frame's evidence F_t
+on the residual stream, so a frame whose views are all absent is told apart directly.
 """
 
 import equinox as eqx
@@ -92,11 +99,12 @@ class MotionEncoder(eqx.Module):
             x = block(x)
         x = self.norm(x).reshape(T, width, -1)
         z, z_root = x[:, :NUM_KEYPOINTS], x[:, NUM_KEYPOINTS]
+        z_frame = jnp.mean(z, axis=1)
         return MotionEvidence(
             features=z,
             root=z_root,
-            onscreen_logits=self.onscreen_head(z_root)[:, 0],
+            onscreen_logits=self.onscreen_head(z_frame)[:, 0],
             canonical_joints=self.joints_head(z),
-            pose_6d=self.pose_head(jnp.mean(z, axis=1)).reshape(T, 16, 6),
+            pose_6d=self.pose_head(z_frame).reshape(T, 16, 6),
             root_velocity=self.velocity_head(z_root),
         )
