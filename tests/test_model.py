@@ -345,6 +345,12 @@ def test_save_and_load_round_trip(tmp_path, tiny_net, hand_model):
     (folder / "config.json").write_text(json.dumps(config))
     with pytest.raises(ValueError, match="records no weights_sha256"):
         M.load(folder)
+    M.save(folder, tiny_net)
+    config = json.loads((folder / "config.json").read_text())
+    config.pop("architecture_revision")  # a folder saved before revisions were recorded
+    (folder / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match="architecture revision 1;.*retrain"):
+        M.load(folder)
     with pytest.raises(FileNotFoundError, match="not a saved ESTHER model"):
         M.load(tmp_path)
 

@@ -393,17 +393,25 @@ def clip_input_from_crops(
 WEIGHTS_FILE = "weights.eqx"
 CONFIG_FILE = "config.json"
 DIGEST_KEY = "weights_sha256"
+REVISION_KEY = "architecture_revision"
+ARCHITECTURE_REVISION = 2
+"""Raised when the same weights would compute something else; `load` refuses other revisions.
+
+1. The network as first trained (folders without the key).
+2. The motion encoder's on-screen head reads its frame's pooled joint tokens, not z_root.
+"""
 
 
 def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
-    """Write `config.json` (the config and the sha256 of the weights) and `weights.eqx`
+    """Write `config.json` (the config, the sha256 of the weights and the architecture
+    revision) and `weights.eqx`
     (`eqx.tree_serialise_leaves`) atomically: a new folder renamed into place."""
     folder = pathlib.Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         eqx.tree_serialise_leaves(tmp / WEIGHTS_FILE, model)
-        record = {**json.loads(model.config.to_json()), DIGEST_KEY: file_sha256(tmp / WEIGHTS_FILE)}
+        record = {**json.loads(model.config.to_json()), DIGEST_KEY: file_sha256(tmp / WEIGHTS_FILE), REVISION_KEY: ARCHITECTURE_REVISION}
         (tmp / CONFIG_FILE).write_text(json.dumps(record, indent=2, sort_keys=True))
         if folder.exists():
             shutil.rmtree(folder)
@@ -415,8 +423,9 @@ def save(folder: str | pathlib.Path, model: ESTHER) -> pathlib.Path:
 
 def load(folder: str | pathlib.Path) -> ESTHER:
     """A model written by `save`: the weights' digest is checked against `config.json`,
-    the config rebuilds the structure from shapes, then the leaves are read (no training
-    code needed)."""
+    a folder of another `ARCHITECTURE_REVISION` is refused (its weights were trained for
+    a network that computed something else), the config rebuilds the structure from
+    shapes, then the leaves are read (no training code needed)."""
     folder = pathlib.Path(folder)
     for name in (CONFIG_FILE, WEIGHTS_FILE):
         if not (folder / name).is_file():
@@ -425,6 +434,12 @@ def load(folder: str | pathlib.Path) -> ESTHER:
     if DIGEST_KEY not in record:
         raise ValueError(f"{folder / CONFIG_FILE} records no {DIGEST_KEY}: the weights cannot be verified (save the model again)")
     expected = record.pop(DIGEST_KEY)
+    revision = record.pop(REVISION_KEY, 1)
+    if revision != ARCHITECTURE_REVISION:
+        raise ValueError(
+            f"{folder} holds a network of architecture revision {revision}; this esther-jax runs revision "
+            f"{ARCHITECTURE_REVISION} (see model.ARCHITECTURE_REVISION): its weights would compute something else, retrain it"
+        )
     actual = file_sha256(folder / WEIGHTS_FILE)
     if actual != expected:
         raise ValueError(
