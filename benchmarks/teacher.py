@@ -297,8 +297,8 @@ def sweep_section(clips: int, frames: int):
             r[group] = g
             print(f"{rig if group == 'stereo' else '':<14}{group:<11}{g['frames']:>10d}{num(g['coverage'], 10, '.1%')}{num(g['p_mpjpe'], 9)}"
                   f"{num(g['pa_mpjpe'], 10)}{num(g['wrist'], 8)}{num(g['good'], 11, '.1%')}")  # fmt: skip
-    print("\nspeed (after compilation; first call = compilation or in-memory reuse; the stage times are host-side:\n"
-          " JAX dispatches asynchronously, so the last stage also waits for the device work of the ones before it):")
+    print("\nspeed (after compilation; first call = compilation or in-memory reuse; each stage's time includes\n"
+          " waiting for its device work, as quality.json's timings do):")
     for rig, r in results.items():
         stages = ", ".join(f"{k.removesuffix('_s')} {v * 1000:.0f}" for k, v in r["stages"].items())
         print(f"  {rig:<14} first call {r['first_s']:6.1f} s, then {r['per_hand_s']:.2f} s per {frames}-frame hand = "

@@ -7,8 +7,9 @@ converged and how many steps it took, and one failing frame never aborts the bat
 - `"lm"` (default): Levenberg-Marquardt with a fixed number of steps, written here in
   a dozen lines: forward-mode Jacobian (`jax.jacfwd`, ~58 unknowns), Marquardt's
   diagonal damping, Cholesky normal equations, accept / reject by the cost. Its
-  program is a `lax.scan`, about half the size of optimistix's general machinery, so
-  it compiles 2-3x faster at the same accuracy (benchmarks/teacher.py measures all four).
+  program is one loop, about half the size of optimistix's general machinery, so it
+  compiles 2-3x faster at the same accuracy (benchmarks/teacher.py measures all four),
+  and its step count may be traced: one compiled program serves every stage.
 - `"dogleg"`: optimistix's dogleg trust-region Gauss-Newton (Cholesky normal equations).
 - `"optx-lm"`: optimistix's Levenberg-Marquardt.
 
@@ -47,8 +48,10 @@ def _flat(residuals: Callable, unravel: Callable, args) -> Callable:
     return f
 
 
-def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int, rtol: float = 1e-3) -> tuple:
-    """`steps` Levenberg-Marquardt steps on one problem (no while loop: vmap-friendly).
+def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int | Int[Array, ""], rtol: float = 1e-3) -> tuple:
+    """`steps` Levenberg-Marquardt steps on one problem: a fixed count, so under `vmap`
+    every problem runs in lockstep with no per-problem exit. `steps` may be traced (an
+    array): one compiled program then serves every step count.
 
     Damping follows Marquardt (lambda * diag(J^T J), plus a floor), halved after an
     accepted step and quadrupled after a rejected one. Returns (solution, converged,
@@ -59,7 +62,7 @@ def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int
     dtype = flat0.dtype
     eye = jnp.eye(flat0.shape[0], dtype=dtype)
 
-    def step(carry, _):
+    def step(_, carry):
         x, res, lam, _ = carry
         J = jax.jacfwd(f)(x)
         g = J.T @ res
@@ -75,10 +78,10 @@ def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int
             jnp.where(accept, trial, res),
             jnp.where(accept, lam * 0.5, lam * 4.0),
             (accept & small) | (jnp.max(jnp.abs(g)) < 1e-8),
-        ), None
+        )
 
     init = (flat0, f(flat0), jnp.asarray(1e-3, dtype), jnp.asarray(False))
-    (x, _, _, converged), _ = jax.lax.scan(step, init, None, length=steps)
+    x, _, _, converged = jax.lax.fori_loop(0, steps, step, init)
     return unravel(x), converged, jnp.asarray(steps)
 
 
@@ -101,7 +104,7 @@ def make_solver(name: str) -> Callable:
     raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
 
 
-def solve_batch(residuals: Callable, y0, shared, per_item, *, steps: int, solver: str = "lm") -> Solution:
+def solve_batch(residuals: Callable, y0, shared, per_item, *, steps: int | Int[Array, ""], solver: str = "lm") -> Solution:
     """Solve `residuals(y, (shared, *per_item))` for every item of a leading batch axis.
 
     Args:
@@ -110,6 +113,8 @@ def solve_batch(residuals: Callable, y0, shared, per_item, *, steps: int, solver
         shared: arguments common to all items (the `Problem`, the `Round`), appended
             after the per-item ones as `(shared[0], *per_item, *shared[1:])`.
         per_item: tuple of batched per-item arguments (`FrameData`, `Track`).
+        steps: solver steps per item (a traced count only for "lm"; optimistix's
+            solvers take a Python int, their maximum).
     """
     run = make_solver(solver)
     problem, *rest = shared

@@ -76,11 +76,20 @@ def frame_data(evidence: Evidence, initial: Initial, problem: Problem, untriangu
     )
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "solver"))
 def solve_round(
     problem: Problem, y0: FrameUnknowns, data: FrameData, track: Track, round: Round, *, steps: int, solver: str
 ) -> solve.Solution:
-    """One round of per-frame solves (vmapped over frames), compiled once per shape."""
+    """One round of `steps` per-frame solver steps (vmapped over frames), compiled once
+    per shape: with "lm" the step count is traced, so the stages' different counts share
+    one program; optimistix's solvers compile once per count (their maximum)."""
+    if solver == "lm":
+        return _solve_round(problem, y0, data, track, round, jnp.asarray(steps, jnp.int32), solver=solver, max_steps=None)
+    return _solve_round(problem, y0, data, track, round, None, solver=solver, max_steps=steps)
+
+
+@functools.partial(jax.jit, static_argnames=("solver", "max_steps"))
+def _solve_round(problem, y0, data, track, round, steps, *, solver: str, max_steps: int | None) -> solve.Solution:
+    steps = steps if max_steps is None else max_steps
     return solve.solve_batch(frame_residuals, y0, (problem, round), (data, track), steps=steps, solver=solver)
 
 
@@ -168,7 +177,7 @@ def pooled_betas(problem: Problem, y: FrameUnknowns, data: FrameData, track: Tra
 
 def shape_lock(
     problem: Problem, data: FrameData, start: Fits, stereo: Bool[Array, "frames"], observed: Bool[Array, "frames"],
-    *, frames: int = 64, rounds: int = 2, steps: int = 6, solver: str = "lm",
+    *, frames: int = 64, rounds: int = 1, steps: int = 16, solver: str = "lm",
 ) -> ShapeLock:  # fmt: skip
     """Stage 1: shape, pose and wrist jointly on the `frames` most confident stereo frames
     (most joints seen by both views), the per-frame shapes pooled by their information
@@ -187,7 +196,7 @@ def shape_lock(
 
 
 def fit_frames(
-    problem: Problem, data: FrameData, start: Fits, *, stiff_pose: float = 25.0, steps: int = 6, solver: str = "lm"
+    problem: Problem, data: FrameData, start: Fits, *, stiff_pose: float = 25.0, steps: int = 5, solver: str = "lm"
 ) -> Fits:
     """Stage 2: every frame's pose and wrist with the locked shape `problem.betas`, in
     two rounds: the pose prior `stiff_pose` times stiffer first (the wrist's orientation
@@ -266,7 +275,7 @@ def motion_confidence(data: FrameData, observed: Bool[Array, "frames"]) -> Float
 
 def refine_motion(
     problem: Problem, data: FrameData, fits: Fits, observed: Bool[Array, "frames"],
-    *, sweeps: int = 1, window: int = 16, stride: int = 8, steps: int = 6, solver: str = "lm",
+    *, sweeps: int = 1, window: int = 16, stride: int = 8, steps: int = 5, solver: str = "lm",
 ) -> Fits:  # fmt: skip
     """Sliding-window motion optimisation: `sweeps` times (smooth the trajectory with the
     motion prior over 16-frame windows, refit every frame to its 2D evidence with the
