@@ -195,6 +195,20 @@ def test_one_and_three_detectors_label(clean_two_hands):
         assert p[ok].mean() < 0.010 and w[ok].mean() < 0.012
 
 
+def test_step_counts_do_not_recompile(clean_two_hands):
+    """The solver's step counts are traced: other counts per stage reuse the compiled programs."""
+    clip = clean_two_hands
+    model, keypoints = mano.load_builtin("right"), clip.keypoints["right"]
+    label_hand(model, clip.rig, keypoints, 30.0)
+    compiled = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, seconds, **_: compiled.append(event) if event == "/jax/core/compile/backend_compile_duration" else None
+    )
+    labels, _ = label_hand(model, clip.rig, keypoints, 30.0, fitting.LabelConfig(steps=2, shape_lock_steps=7))
+    assert compiled == []
+    assert labels["valid"].any()
+
+
 def test_palm_pose_is_exact_in_one_fisheye_view():
     """The palm's perspective-n-point recovers the wrist and orientation exactly from one
     Aria view (no triangulation), whatever the starting guess."""
