@@ -49,8 +49,8 @@ class LabelConfig:
     5 gave 3.9, 6 gave 3.7; on the esther rig 3 steps suffice)."""
     shape_lock_steps: int = 16
     """Solver steps per round of the shape lock. The locked shape sets every frame's bone
-    lengths, so its solve is where steps pay (benchmarks/teacher.py, esther rig, 12
-    clips: 16 shape-lock steps give P-MPJPE 3.0 mm where two rounds of 6 gave 4.1).
+    lengths, so its solve is where steps pay (benchmarks/teacher.py rig sweep, esther rig:
+    16 shape-lock steps give P-MPJPE 2.5 mm where two rounds of 6 gave 4.1).
     With the default solver every count shares one compiled program."""
     shape_lock_frames: int = 64
     shape_lock_rounds: int = 1

@@ -395,7 +395,7 @@ CONFIG_FILE = "config.json"
 DIGEST_KEY = "weights_sha256"
 REVISION_KEY = "architecture_revision"
 ARCHITECTURE_REVISION = 2
-"""Raised when the same weights would compute something else; `load` refuses other revisions.
+"""Incremented when the same weights would compute something else; `load` refuses other revisions.
 
 1. The network as first trained (folders without the key).
 2. The motion encoder's on-screen head reads its frame's pooled joint tokens, not z_root.
