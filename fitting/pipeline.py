@@ -239,7 +239,8 @@ def label_hand(
     problem = _problem(model, rig_t, weights, betas, fps_t)
     init, _ = _start(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
-    fits = jax.block_until_ready(stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver))
+    fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
+    jax.block_until_ready(fits)
     timings["fit_frames_s"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()

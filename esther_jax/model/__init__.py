@@ -30,6 +30,7 @@ from .esther import HandPrediction as HandPrediction
 from .esther import clip_input_from_crops as clip_input_from_crops
 from .esther import extract_features as extract_features
 from .esther import ARCHITECTURE_REVISION as ARCHITECTURE_REVISION
+from .esther import REVISION_KEY as REVISION_KEY
 from .esther import load as load
 from .esther import mirror_clip as mirror_clip
 from .esther import parameter_counts as parameter_counts

@@ -304,7 +304,7 @@ def load_checkpoint(run: pathlib.Path, skeleton: TrainState) -> TrainState | Non
 
 def _run_record(model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.DataConfig, init: str | None) -> dict:
     return {
-        "model": {**json.loads(model_cfg.to_json()), "architecture_revision": M.ARCHITECTURE_REVISION},  # resuming checks it
+        "model": {**json.loads(model_cfg.to_json()), M.REVISION_KEY: M.ARCHITECTURE_REVISION},  # resuming checks it
         "train": dataclasses.asdict(cfg),
         "data": dataclasses.asdict(data_cfg),
         "init": init,
