@@ -358,6 +358,29 @@ def test_generator_reproduces_the_shipped_model():
         np.testing.assert_allclose(np.abs(shipped["hands_components"]), np.abs(fresh["hands_components"]), atol=1e-4)
 
 
+@pytest.mark.parametrize(
+    "grasp, palmar_m, gap_m",
+    [("fist", 0.016, 0.0), ("point", 0.016, 0.0), ("pinch", 0.0, 0.012), ("tripod", 0.0, 0.012), ("power_grasp", 0.035, 0.0)],
+)
+def test_grasp_archetypes_make_their_thumb_contact(right, grasp, palmar_m, gap_m):
+    """A grasp archetype's thumb tip rests where the grasp puts it: on the curled fingers'
+    middle phalanges (fist, point; `palmar_m` out of the palm, a finger's and the thumb's
+    half-thickness), at the index tip (pinch) or between the index and middle tips
+    (tripod) with the pads' gap, opposite the index round a held object (power grasp)."""
+    from esther_jax.mano import builtin_generator
+
+    frames = mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right)
+    hand_pose = mano.anatomical_to_hand_pose(jnp.asarray(builtin_generator.archetype_angles(grasp)), frames)
+    j = np.asarray(mano.forward_joints(right, mano.ManoParams(jnp.zeros(3), hand_pose, jnp.zeros(10), jnp.zeros(3))), np.float64)
+    dorsal = np.cross(j[17] - j[0], j[5] - j[0])
+    dorsal /= np.linalg.norm(dorsal)
+    middle_phalanx = lambda pip: 0.5 * (j[pip] + j[pip + 1])  # noqa: E731
+    finger_point = {"fist": 0.5 * (middle_phalanx(6) + middle_phalanx(10)), "point": middle_phalanx(10), "pinch": j[8],
+                    "tripod": 0.5 * (j[8] + j[12]), "power_grasp": middle_phalanx(6)}[grasp]  # fmt: skip
+    contact = finger_point - palmar_m * dorsal
+    assert abs(np.linalg.norm(j[4] - contact) - gap_m) < 0.005
+
+
 # ----------------------------------------------------------------------------- pickles
 
 

@@ -58,7 +58,7 @@ from .constants import (
 )
 
 ASSET_PATH = pathlib.Path(__file__).with_name("assets") / "builtin_right.npz"
-GENERATOR_VERSION = "esther-open-hand-1"
+GENERATOR_VERSION = "esther-open-hand-2"
 
 WRIST_POSITION = np.array([0.0957, 0.0064, 0.0062])
 """Rest wrist joint in the model frame (placed as MANO's, so smplx-style transl look familiar)."""
@@ -472,15 +472,19 @@ def pose_blend_shapes(vertices, weights, joints, strength=0.3) -> np.ndarray:
 
 
 ARCHETYPES = {
-    # per finger (MCP, PIP, DIP) flexion in degrees; thumb (CMC flex, CMC abd, CMC twist, MCP flex, IP flex)
+    # per finger (MCP, PIP, DIP) flexion in degrees; thumb (CMC flex, CMC abd, CMC twist, MCP flex, IP flex).
+    # The grasps' thumb angles were solved on the built-in hand for each grasp's contact (tested in
+    # test_mano): fist and point lay the thumb tip across the curled fingers' middle phalanges, pinch
+    # and tripod bring it to the index tip (tripod: between the index and middle tips), and the power
+    # grasp wraps it round the held object opposite the index's middle phalanx.
     "flat": ({f: (0, 0, 0) for f in FINGERS4}, (0, 0, 0, 0, 0), 0.0),
     "spread": ({f: (-5, 0, 0) for f in FINGERS4}, (-10, 30, 0, 0, 0), 12.0),
     "relaxed": ({"index": (20, 30, 15), "middle": (25, 35, 18), "ring": (28, 38, 20), "pinky": (30, 40, 22)}, (10, 15, 10, 15, 15), 3.0),
-    "fist": ({f: (85, 100, 65) for f in FINGERS4}, (40, 15, 25, 45, 50), -3.0),
-    "power_grasp": ({f: (55, 60, 30) for f in FINGERS4}, (25, 35, 30, 20, 20), 0.0),
-    "pinch": ({"index": (45, 55, 20), "middle": (40, 60, 30), "ring": (45, 65, 35), "pinky": (50, 70, 40)}, (30, 40, 35, 20, 25), 0.0),
-    "tripod": ({"index": (40, 45, 20), "middle": (40, 45, 20), "ring": (60, 80, 40), "pinky": (70, 85, 45)}, (30, 35, 30, 20, 25), 0.0),
-    "point": ({"index": (0, 5, 0), "middle": (85, 100, 60), "ring": (85, 100, 60), "pinky": (85, 100, 60)}, (35, 15, 10, 40, 40), 0.0),
+    "fist": ({f: (85, 100, 65) for f in FINGERS4}, (0, 5, -30, 70, 40), -3.0),
+    "power_grasp": ({f: (55, 60, 30) for f in FINGERS4}, (35, -15, 10, 0, 0), 0.0),
+    "pinch": ({"index": (45, 55, 20), "middle": (40, 60, 30), "ring": (45, 65, 35), "pinky": (50, 70, 40)}, (40, -10, 0, 0, 0), 0.0),
+    "tripod": ({"index": (40, 45, 20), "middle": (40, 45, 20), "ring": (60, 80, 40), "pinky": (70, 85, 45)}, (40, -20, 0, 0, 0), 0.0),
+    "point": ({"index": (0, 5, 0), "middle": (85, 100, 60), "ring": (85, 100, 60), "pinky": (85, 100, 60)}, (15, 0, -30, 50, 60), 0.0),
     "thumb_out": ({f: (10, 10, 5) for f in FINGERS4}, (-15, 40, -10, 0, 0), 5.0),
 }  # fmt: skip
 
