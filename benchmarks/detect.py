@@ -1,15 +1,16 @@
 """The real detector on pixels with exact ground truth (issue 15, point 3), side by side
 with the simulated detector.
 
-    python benchmarks/detect.py [--crop-clips 12] [--crop-frames 4] [--clips 8] [--frames 16] [--rig esther] [--out DIR]
+    python benchmarks/detect.py [--crop-clips 48] [--crop-frames 1] [--clips 8] [--frames 16] [--rig esther] [--out DIR]
 
 1. Real-photo control (optional: skipped unless the MediaPipe reference photos with their
    published expected keypoints, tensorflow/tfjs-models' hand-pose-detection test data, sit
    in ORACLE): hands found in `hands.jpg` and the worst keypoint error against the reference.
-2. Hand-centred crops: for every on-screen, in-view hand of `--crop-clips` short rendered
-   synthetic clips (`esther synth --render`; many short clips, because consecutive frames
-   of one clip are nearly the same image: 3 clips of 16 frames are about 6 hands, and
-   their rate swings by 15 points with the seed), a 224 px crop around its projected
+2. Hand-centred crops: for every on-screen, in-view hand of `--crop-clips` one-frame rendered
+   synthetic clips (`esther synth --render`; one frame each, because the frames of one clip
+   are nearly the same image: 12 clips of 4 frames are about 20 distinct hands, and there an
+   imperceptible change of the pixels, the frames before or after mp4 encoding, moved the
+   count by 13 of 160 crops), a 224 px crop around its projected
    ground-truth keypoints (padding 1.25 and 2.0 of the keypoints' box, `CROP_PADDINGS`)
    of the rendered frame, run through MediaPipe (image mode). Detection rate (the hand
    itself found: median keypoint error under a quarter of its box), the failures split
@@ -228,8 +229,8 @@ def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--crop-clips", type=int, default=12, help="clips for the hand-centred crops")
-    parser.add_argument("--crop-frames", type=int, default=4, help="frames per crop clip")
+    parser.add_argument("--crop-clips", type=int, default=48, help="clips for the hand-centred crops")
+    parser.add_argument("--crop-frames", type=int, default=1, help="frames per crop clip")
     parser.add_argument("--clips", type=int, default=8, help="clips for the end-to-end run")
     parser.add_argument("--frames", type=int, default=16, help="frames per end-to-end clip")
     parser.add_argument("--rig", default="esther")
