@@ -420,6 +420,22 @@ def test_synth_record_without_new_fields_counts_as_defaults(tmp_path):
         synth.synthesize(out, 0, cfg, seed=3, progress=False)
 
 
+def test_synth_folder_of_another_engine_revision_is_never_added_to(tmp_path):
+    out = tmp_path / "clips"
+    cfg = synth.SynthConfig(num_frames=4)
+    synth.synthesize(out, 1, cfg, seed=3, progress=False)
+    record = json.loads((out / "synth.json").read_text())
+    assert record["engine_revision"] == synth.ENGINE_REVISION
+    del record["engine_revision"]  # as written before the revision was recorded: revision 1
+    (out / "synth.json").write_text(json.dumps(record))
+    with pytest.warns(UserWarning, match="made by synth engine revision 1"):
+        summary = synth.synthesize(out, 1, cfg, seed=3, progress=False)  # complete: used as it is
+    assert summary["made"] == 0 and "engine_revision" not in json.loads((out / "synth.json").read_text())
+    with pytest.raises(ValueError, match=f"revision 1, and this is revision {synth.ENGINE_REVISION}.*would mix"):
+        synth.synthesize(out, 2, cfg, seed=3, progress=False)
+    assert not (out / "clip_00001").exists()
+
+
 def test_synth_cli_crop_strategy_and_motion_knobs(tmp_path, capsys):
     out = tmp_path / "held_out"
     knobs = ["--crop-strategy", "hc", "--shape-sd", "2", "--depth-range", "0.1", "1.1", "--depth-sampling", "uniform"]

@@ -14,6 +14,7 @@ import pathlib
 import shutil
 import tempfile
 import time
+import warnings
 
 import cv2
 import jax
@@ -28,6 +29,11 @@ from . import detector, flow, motion, render
 
 CROP_SIZE = 224
 CROP_PADDING = 1.5
+ENGINE_REVISION = 2
+"""Incremented when the engine makes other clips from the same settings and seed (motion,
+built-in hand, renderer); `synth.json` records it, and a record without it was made at
+revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' contacts
+(`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2)."""
 """Crop side relative to the hand's 2D extent (context for the network)."""
 
 
@@ -323,14 +329,20 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
     clips or resume. A field the record lacks (one added to `SynthConfig` or
     `MotionConfig` after the folder was made) counts as its default, which is what the
     folder's clips were made with; the record is then rewritten with it.
+
+    The record also holds the `ENGINE_REVISION` that made the clips. A folder of another
+    revision is never added to (a ValueError: its clips and new ones would differ in
+    kind); when it already holds all `num_clips` clips they are used as they are, with a
+    warning.
     """
     from tqdm import tqdm
 
     out = check_out_dir(out)
-    settings = strict_json({"config": _config_dict(cfg), "seed": seed})
+    settings = strict_json({"config": _config_dict(cfg), "seed": seed, "engine_revision": ENGINE_REVISION})
     record = out / "synth.json"
     if record.exists():
         previous = read_json(record)
+        made_by = previous.get("engine_revision", 1)
         recorded = _with_defaults(previous["config"]) if isinstance(previous.get("config"), dict) else {}
         differs = sorted(
             [f"config.{k}" for k in settings["config"] if recorded.get(k) != settings["config"][k]]
@@ -344,6 +356,18 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
                 f"{out} holds clips made with other settings ({', '.join(differs)} differ; e.g. {first} was {old!r}, "
                 f"now {new!r}): use another --out, or the same settings to add or resume clips"
             )
+        if made_by != ENGINE_REVISION:
+            if not all((out / f"clip_{i:05d}" / "meta.json").exists() for i in range(num_clips)):
+                raise ValueError(
+                    f"{out} holds clips made by synth engine revision {made_by}, and this is revision {ENGINE_REVISION} "
+                    "(the clips it makes differ): adding to it would mix the two; use another --out"
+                )
+            warnings.warn(
+                f"{out}: its clips were made by synth engine revision {made_by}, and this is revision {ENGINE_REVISION}; "
+                "they are used as they are (remove the folder to make them anew)",
+                stacklevel=2,
+            )
+            return {"made": 0, "skipped": num_clips, "seconds": 0.0, "out": str(out)}
     elif any(out.glob("clip_*")):
         raise ValueError(f"{out} holds clips but no synth.json saying how they were made: use another --out")
     else:
