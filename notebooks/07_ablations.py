@@ -81,11 +81,15 @@ paper_ranked = sorted((r for r in results if r != "esther"), key=lambda r: -PAPE
 same_sign = [r for r in ranked if (results[r]["mpjpe_mm"] - full["mpjpe_mm"]) * (PAPER_MPJPE[r] - PAPER_MPJPE["esther"]) > 0]
 geometry_first = set(ranked[:2]) == {"no-plucker", "no-cross-view"}
 complete = len(rows) == len(PAPER_MPJPE)
+delta = lambda r: results[r]["mpjpe_mm"] - full["mpjpe_mm"]  # noqa: E731
+paper_delta = lambda r: PAPER_MPJPE[r] - PAPER_MPJPE["esther"]  # noqa: E731
+damaging = [f"{r} ({delta(r):+.1f} mm)" for r in ranked if delta(r) > 0][:2]
+paper_damaging = [f"{r} ({paper_delta(r):+.1f} mm)" for r in paper_ranked if paper_delta(r) > 0][:2]
 verdict = (
     f"**{'Reproduces' if complete and geometry_first else 'Does not reproduce' if complete else 'Partial run'}.** "
     f"{len(rows)} of {len(PAPER_MPJPE)} rows trained under one budget; the full model's MPJPE is {full['mpjpe_mm']:.1f} mm. "
     f"{len(same_sign)} of {len(ranked)} ablations move MPJPE in the paper's direction. Most damaging here: "
-    f"{', '.join(ranked[:2])} (paper: {', '.join(paper_ranked[:2])})."
+    f"{', '.join(damaging) or 'none'} (paper, over the same rows: {', '.join(paper_damaging) or 'none'})."
 )
 print(verdict)
 
