@@ -51,9 +51,9 @@ start = time.perf_counter()
 scale = studies.scale_from_env()
 out = studies.report_dir(scale)
 TABLE_ROWS = [r for r in M.ABLATIONS if r != "monocular"]
-chosen = [r for r in os.environ.get("ESTHER_ABLATION_ROWS", "").split(",") if r]
+chosen = [r for r in os.environ.get(studies.ABLATION_ROWS_ENV, "").split(",") if r]
 if unknown := sorted(set(chosen) - set(TABLE_ROWS)):
-    raise ValueError(f"ESTHER_ABLATION_ROWS: unknown rows {unknown}; choose from {TABLE_ROWS}")
+    raise ValueError(f"{studies.ABLATION_ROWS_ENV}: unknown rows {unknown}; choose from {TABLE_ROWS}")
 rows = ["esther", *(chosen or (["anchored-wrist"] if scale.name == "smoke" else TABLE_ROWS))]
 windows = studies.heldout_windows(scale, studies.dataset(scale, "heldout"))
 

@@ -52,6 +52,8 @@ from .attention import HandAttention, attention_map, attention_on_hand, hand_pat
 SCALE_ENV = "ESTHER_STUDY_SCALE"
 ROOT_ENV = "ESTHER_STUDY_ROOT"
 OUT_ENV = "ESTHER_STUDY_OUT"
+ABLATION_ROWS_ENV = "ESTHER_ABLATION_ROWS"
+"""Study 07's table-5 rows to train and score next to the full model (comma-separated; unset: all)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -376,7 +378,7 @@ def gate_stress_test(net: M.ESTHER, windows: list[data_lib.Window], scale: Study
 
 def command_line() -> str:
     """How this process was started, with the study's environment variables."""
-    env = " ".join(f"{k}={os.environ[k]}" for k in (SCALE_ENV, ROOT_ENV, OUT_ENV) if os.environ.get(k))
+    env = " ".join(f"{k}={os.environ[k]}" for k in (SCALE_ENV, ROOT_ENV, OUT_ENV, ABLATION_ROWS_ENV) if os.environ.get(k))
     return " ".join(x for x in (env, "python", *sys.argv) if x)
 
 
