@@ -109,6 +109,20 @@ def test_notebook_runs_at_smoke_scale(notebook, study_env):
     assert record["results"]
 
 
+def test_ablation_rows_are_chosen_by_name(study_env, monkeypatch):
+    """`ESTHER_ABLATION_ROWS` picks study 07's rows (the full model always scored), and a
+    misspelt row is refused by name before anything is trained or scored."""
+    notebook = next(p for p in NOTEBOOKS if p.stem == "07_ablations")
+    monkeypatch.setenv(studies.ABLATION_ROWS_ENV, "no-plucker,no-such-row")
+    with pytest.raises(ValueError, match=r"unknown rows \['no-such-row'\]"):
+        runpy.run_path(str(notebook), run_name="__main__")
+    monkeypatch.setenv(studies.ABLATION_ROWS_ENV, "no-flow-token")
+    runpy.run_path(str(notebook), run_name="__main__")
+    record = _check_report(study_env, "ablations")
+    assert list(record["results"]["rows"]) == ["esther", "no-flow-token"]
+    assert f"{studies.ABLATION_ROWS_ENV}=no-flow-token" in record["command"]
+
+
 def test_every_study_has_a_notebook():
     assert sorted(p.stem for p in NOTEBOOKS) == sorted(STUDY_OF)
 
