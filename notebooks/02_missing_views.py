@@ -83,7 +83,7 @@ verdict = (
         "."
         if holds or clean["wrist_mm"] <= min(results[m]["both views"]["wrist_mm"] for m in collapse)
         else f"; what does not hold is ours: its wrist barely moves because it is already {clean['wrist_mm']:.1f} mm with "
-        "both views, worse than the anchored designs' there (the small network has not learned metric wrist depth from its "
+        "both views, worse than the anchored designs' there (the small network has not learned to place the wrist from its "
         "crops and rays)."
     )
 )

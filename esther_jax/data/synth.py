@@ -29,12 +29,12 @@ from . import detector, flow, motion, render
 
 CROP_SIZE = 224
 CROP_PADDING = 1.5
+"""Crop side relative to the hand's 2D extent (context for the network)."""
 ENGINE_REVISION = 2
 """Incremented when the engine makes other clips from the same settings and seed (motion,
 built-in hand, renderer); `synth.json` records it, and a record without it was made at
 revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' contacts
 (`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2)."""
-"""Crop side relative to the hand's 2D extent (context for the network)."""
 
 
 @dataclasses.dataclass(frozen=True)
