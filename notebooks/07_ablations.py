@@ -78,11 +78,11 @@ figures = [plot_metric_vs_condition(studies.records("cpu network", results), "mp
 # %%
 ranked = sorted((r for r in results if r != "esther"), key=lambda r: -results[r]["mpjpe_mm"])
 paper_ranked = sorted((r for r in results if r != "esther"), key=lambda r: -PAPER_MPJPE[r])
-same_sign = [r for r in ranked if (results[r]["mpjpe_mm"] - full["mpjpe_mm"]) * (PAPER_MPJPE[r] - PAPER_MPJPE["esther"]) > 0]
-geometry_first = set(ranked[:2]) == {"no-plucker", "no-cross-view"}
-complete = len(rows) == len(PAPER_MPJPE)
 delta = lambda r: results[r]["mpjpe_mm"] - full["mpjpe_mm"]  # noqa: E731
 paper_delta = lambda r: PAPER_MPJPE[r] - PAPER_MPJPE["esther"]  # noqa: E731
+same_sign = [r for r in ranked if delta(r) * paper_delta(r) > 0]
+geometry_first = set(ranked[:2]) == {"no-plucker", "no-cross-view"}
+complete = len(rows) == len(PAPER_MPJPE)
 damaging = [f"{r} ({delta(r):+.1f} mm)" for r in ranked if delta(r) > 0][:2]
 paper_damaging = [f"{r} ({paper_delta(r):+.1f} mm)" for r in paper_ranked if paper_delta(r) > 0][:2]
 verdict = (

@@ -357,7 +357,7 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
                 f"now {new!r}): use another --out, or the same settings to add or resume clips"
             )
         if made_by != ENGINE_REVISION:
-            if not all((out / f"clip_{i:05d}" / "meta.json").exists() for i in range(num_clips)):
+            if not all((out / _clip_name(i) / "meta.json").exists() for i in range(num_clips)):
                 raise ValueError(
                     f"{out} holds clips made by synth engine revision {made_by}, and this is revision {ENGINE_REVISION} "
                     "(the clips it makes differ): adding to it would mix the two; use another --out"
@@ -378,7 +378,7 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
     def attempt(index: int, *, wait: bool) -> bool:
         """Make clip `index` unless it is finished; False when another run holds it."""
         nonlocal made, skipped
-        name = f"clip_{index:05d}"
+        name = _clip_name(index)
         with exclusive_lock(out / f".{name}.lock", wait=wait) as locked:
             if not locked:
                 return False
@@ -397,6 +397,10 @@ def synthesize(out: str | pathlib.Path, num_clips: int, cfg: SynthConfig = Synth
     finished = sum(1 for p in out.glob("clip_*") if (p / "meta.json").exists())
     write_json(record, {**settings, "clips": finished, "last_run": summary})
     return summary
+
+
+def _clip_name(index: int) -> str:
+    return f"clip_{index:05d}"
 
 
 def _config_dict(cfg: SynthConfig) -> dict:
