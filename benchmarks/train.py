@@ -175,26 +175,6 @@ def _baseline(train_windows, val_windows, data_cfg) -> dict:
     return {"p_mpjpe_mm": 1000 * float(np.mean(p)), "pa_mpjpe_mm": 1000 * float(np.mean(pa)), "wrist_mm": 1000 * float(np.mean(wrist)), "windows": len(p)}
 
 
-def _wrist_axes(pred: np.ndarray, truth: np.ndarray) -> dict:
-    """Wrist agreement per rig-frame axis and along / across the line of sight.
-
-    Args:
-        pred, truth: (N, 3) predicted and true wrists (metres, rig frame), one row per
-            frame with a target.
-    """
-    err = pred - truth
-    sight = truth / np.linalg.norm(truth, axis=-1, keepdims=True)
-    along = np.sum(err * sight, axis=-1)
-    axes = {
-        name: {"mae_mm": 1000 * float(np.abs(err[:, a]).mean()), "corr": float(np.corrcoef(pred[:, a], truth[:, a])[0, 1]),
-               "pred_sd_mm": 1000 * float(pred[:, a].std()), "true_sd_mm": 1000 * float(truth[:, a].std())}
-        for a, name in enumerate("xyz")
-    }  # fmt: skip
-    axes["along_mm"] = 1000 * float(np.abs(along).mean())
-    axes["across_mm"] = 1000 * float(np.linalg.norm(err - along[:, None] * sight, axis=-1).mean())
-    return axes
-
-
 def learn(args) -> None:
     import dataclasses
     import json
@@ -227,7 +207,8 @@ def learn(args) -> None:
         result[views] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=dropped)
     seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)
     valid = np.asarray(seen.targets.valid)
-    result["wrist_axes"] = _wrist_axes(np.asarray(seen.joints[..., 0, :])[valid], np.asarray(seen.targets.joints[..., 0, :])[valid])
+    axes = metrics.wrist_axes(seen.joints[..., 0, :][valid], seen.targets.joints[..., 0, :][valid])
+    result["wrist_axes"] = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(axes).items()}
     result["baseline"] = _baseline(train.build_index(train_dirs, data_cfg), val_windows, val_cfg)
     write_json(out / "learning.json", result)
     print(json.dumps(result, indent=1))
@@ -239,8 +220,8 @@ def learn(args) -> None:
     b = result["baseline"]
     print(f"{'trivial baseline':<22} {b['p_mpjpe_mm']:8.1f} {b['pa_mpjpe_mm']:9.1f} {b['wrist_mm']:7.1f}")
     w = result["wrist_axes"]
-    print("wrist, both views:  " + "   ".join(f"{a}: {w[a]['mae_mm']:.1f} mm, corr {w[a]['corr']:.2f}, spread {w[a]['pred_sd_mm']:.0f} / "
-                                           f"{w[a]['true_sd_mm']:.0f} mm" for a in "xyz")
+    print("wrist, both views:  " + "   ".join(f"{a}: {w['mae_mm'][i]:.1f} mm, corr {w['correlation'][i]:.2f}, spread "
+                                           f"{w['pred_sd_mm'][i]:.0f} / {w['true_sd_mm'][i]:.0f} mm" for i, a in enumerate("xyz"))
           + f"   along the line of sight {w['along_mm']:.1f} mm, across {w['across_mm']:.1f} mm")  # fmt: skip
 
 

@@ -13,7 +13,8 @@ one frame and vmap over sequences; optional masks mark valid joints or frames.
   reflection, isotropic scale and translation) of the *prediction onto the ground
   truth*, then MPJPE over all 21 joints (HMR/HaMeR variant; FreiHAND's
   `orthogonal_procrustes` would allow reflections).
-- `wrist_error`: distance between the wrists (keypoint 0).
+- `wrist_error`: distance between the wrists (keypoint 0); `wrist_axes` breaks wrist
+  errors down per axis and along / across the line of sight.
 - `jitter`: appendix L exactly: mean over valid triplets of the 21-joint mean of
   ||S_{t-1} - 2 S_t + S_{t+1}|| times fps^2; a triplet counts only if its three frames
   are on-screen, so nothing is formed across an off-screen frame.
@@ -31,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._math import eps, safe_norm
+from ._math import eps, safe_norm, safe_normalize
 from .cameras import StereoRig
 
 PCK_MAX_THRESHOLD_M = 0.05
@@ -290,6 +291,41 @@ def depth_scatter(
     return DepthScatter(
         slope=slope, intercept=intercept, correlation=correlation,
         systematic_mm=rms(fit - zg), random_mm=rms(zp - fit), rmse_mm=rms(zp - zg), count=n,
+    )  # fmt: skip
+
+
+class WristAxes(eqx.Module):
+    """Where wrist errors lie: per axis of the frame (x, y, z) and along / across the
+    line of sight from the frame's origin to the true wrist (millimetres)."""
+
+    mae_mm: Float[Array, "3"]
+    """Mean absolute error per axis."""
+    correlation: Float[Array, "3"]
+    """Per axis, the correlation of the predicted with the true coordinate."""
+    pred_sd_mm: Float[Array, "3"]
+    """Per axis, the spread (standard deviation) of the predicted coordinate."""
+    true_sd_mm: Float[Array, "3"]
+    along_mm: Float[Array, ""]
+    """Mean |e . u|, with e the error and u the unit direction to the true wrist: range error."""
+    across_mm: Float[Array, ""]
+    """Mean |e - (e . u) u|: the error across the line of sight."""
+
+
+def wrist_axes(pred: Float[Array, "n 3"], truth: Float[Array, "n 3"]) -> WristAxes:
+    """How predicted wrists (or any points, metres, one row per frame) miss the true ones,
+    per axis of their frame and along / across the line of sight from its origin (the
+    rig frame's: the left camera). A coordinate a network has not learned shows as a
+    correlation near 0 and a predicted spread far below the truth's (`pred_sd_mm`)."""
+    if pred.shape != truth.shape or pred.ndim != 2 or pred.shape[-1] != 3:
+        raise ValueError(f"pred and truth must be (n, 3) points; got {pred.shape} and {truth.shape}")
+    err = pred - truth
+    sight = safe_normalize(truth)
+    along = jnp.sum(err * sight, axis=-1)
+    per_axis = jax.vmap(depth_scatter, in_axes=(1, 1))(pred, truth)
+    return WristAxes(
+        mae_mm=1000.0 * jnp.mean(jnp.abs(err), axis=0), correlation=per_axis.correlation,
+        pred_sd_mm=1000.0 * jnp.std(pred, axis=0), true_sd_mm=1000.0 * jnp.std(truth, axis=0),
+        along_mm=1000.0 * jnp.mean(jnp.abs(along)), across_mm=1000.0 * jnp.mean(safe_norm(err - along[:, None] * sight)),
     )  # fmt: skip
 
 

@@ -276,3 +276,21 @@ def test_depth_scatter_gradients_are_finite_at_zero_error():
     zp, zg = np.asarray(z_pred, np.float64), np.asarray(z_gt, np.float64)
     assert float(d.rmse_mm) == pytest.approx(np.sqrt(np.mean((zp - zg) ** 2)) * 1000, rel=1e-4)
     assert float(d.correlation) == pytest.approx(np.corrcoef(zp, zg)[0, 1], rel=1e-4)
+
+
+def test_wrist_axes_locate_an_error_per_axis_and_along_the_line_of_sight():
+    rng = np.random.default_rng(0)
+    truth = jnp.asarray(np.c_[rng.uniform(-0.2, 0.2, 64), rng.uniform(-0.1, 0.2, 64), rng.uniform(0.3, 0.6, 64)])
+    pred = truth.at[:, 1].set(0.05)  # y not learned: a constant height
+    axes = jax.tree.map(np.asarray, metrics.wrist_axes(pred, truth))
+    np.testing.assert_allclose(axes.mae_mm[[0, 2]], 0.0, atol=1e-9)
+    np.testing.assert_allclose(axes.mae_mm[1], 1000 * np.mean(np.abs(0.05 - np.asarray(truth[:, 1]))), rtol=1e-5)
+    np.testing.assert_allclose(axes.correlation[[0, 2]], 1.0, rtol=1e-5)
+    assert abs(axes.correlation[1]) < 1e-6 and axes.pred_sd_mm[1] < 1e-3 < axes.true_sd_mm[1]
+    # on the optical axis, a y error is all across the line of sight, a z error all along it
+    on_axis = jnp.asarray([[0.0, 0.0, 0.4]])
+    across = metrics.wrist_axes(on_axis + jnp.asarray([[0.0, 0.01, 0.0]]), on_axis)
+    along = metrics.wrist_axes(on_axis + jnp.asarray([[0.0, 0.0, -0.02]]), on_axis)
+    np.testing.assert_allclose([across.across_mm, across.along_mm, along.across_mm, along.along_mm], [10.0, 0.0, 0.0, 20.0], atol=1e-4)
+    with pytest.raises((ValueError, TypeError), match="truth"):  # jaxtyping checks first in tests
+        metrics.wrist_axes(truth, truth[:, :2])
