@@ -29,8 +29,9 @@ wrist-relative hand placed at the wrist triangulated from the clip's detected 2D
 keypoints (detectors averaged; a frame without a triangulation keeps the last one).
 The wrist with both views is broken down by rig-frame axis (mean absolute error, the
 correlation and spread of the prediction against the truth's) and into its parts along
-and across the line of sight from the rig origin: this is what showed that the network
-had learned the wrist's x and z but not its height y. Writes `RUN/learning.json`; a finished stage is not trained again (rerun to rescore);
+and across the line of sight from the rig origin (`metrics.wrist_axes`): this is what
+showed that the network had learned the wrist's x and z but not its height y. Writes
+`RUN/learning.json`; a finished stage is not trained again (rerun to rescore);
 `--stage2-steps 0` scores stage 1 alone (its 2D error is the number to watch), `--set`
 changes model config fields (the levers: backbone, dim, crop_size, ...).
 """

@@ -318,6 +318,8 @@ def wrist_axes(pred: Float[Array, "n 3"], truth: Float[Array, "n 3"]) -> WristAx
     correlation near 0 and a predicted spread far below the truth's (`pred_sd_mm`)."""
     if pred.shape != truth.shape or pred.ndim != 2 or pred.shape[-1] != 3:
         raise ValueError(f"pred and truth must be (n, 3) points; got {pred.shape} and {truth.shape}")
+    if pred.shape[0] == 0:
+        raise ValueError("no wrists to compare (n = 0): every frame was masked out")
     err = pred - truth
     sight = safe_normalize(truth)
     along = jnp.sum(err * sight, axis=-1)

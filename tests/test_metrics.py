@@ -294,3 +294,5 @@ def test_wrist_axes_locate_an_error_per_axis_and_along_the_line_of_sight():
     np.testing.assert_allclose([across.across_mm, across.along_mm, along.across_mm, along.along_mm], [10.0, 0.0, 0.0, 20.0], atol=1e-4)
     with pytest.raises((ValueError, TypeError), match="truth"):  # jaxtyping checks first in tests
         metrics.wrist_axes(truth, truth[:, :2])
+    with pytest.raises(ValueError, match="no wrists"):
+        metrics.wrist_axes(truth[:0], truth[:0])
