@@ -183,7 +183,7 @@ def learn(args) -> None:
 
     from esther_jax.clips import list_clips
     from esther_jax.files import write_json
-    from esther_jax.train.validation import evaluate_windows, predict_windows
+    from esther_jax.train.validation import evaluate_windows, predict_windows, score_predictions
 
     def parse(field: str, text: str):
         kind = type(getattr(M.config(args.config), field))
@@ -204,9 +204,9 @@ def learn(args) -> None:
     val_windows = train.build_index(val_dirs, val_cfg)
     result = {"config": cfg.name, "overrides": overrides, "evaluated": last.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs), "seconds": timings,
               "stage1_steps": args.stage1_steps, "stage2_steps": args.stage2_steps, "batch": args.batch, "lr": args.lr}  # fmt: skip
-    for views, dropped in (("both", None), ("right dropped", 1)):
-        result[views] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=dropped)
-    seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)
+    seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)  # both views: predicted once, scored and broken down
+    result["both"] = score_predictions(seen.joints, seen.emitted, val_windows, val_cfg, keypoints_2d=seen.keypoints_2d, batch=args.batch)
+    result["right dropped"] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=1)
     valid = np.asarray(seen.targets.valid)
     axes = metrics.wrist_axes(seen.joints[..., 0, :][valid], seen.targets.joints[..., 0, :][valid])
     result["wrist_axes"] = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(axes).items()}
