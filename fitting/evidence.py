@@ -256,11 +256,12 @@ def palm_pose(
     orientation and, through the hand's known size, the distance: in a monocular frame
     this is the metric depth cue; in a stereo frame both views constrain it. The
     objective (Huber on the angle between observed and posed rays, confidence-weighted)
-    is solved by Levenberg-Marquardt from 24 cube orientations at two distances along the
-    palm's mean ray, plus the given start (the triangulated palm's Kabsch fit) where
-    `has_start`; the lowest cost wins, which resolves the two mirror-image poses a nearly
-    planar palm admits (the thumb CMC sits off the palm plane). With `search=False` only
-    the given start is refined (a pose already found, e.g. with another shape).
+    is solved by Levenberg-Marquardt from 24 cube orientations placed on the palm's mean
+    ray (at each of `PNP_START_DEPTHS_M`), plus the given start (the triangulated palm's
+    Kabsch fit) where `has_start`; the lowest cost wins, which resolves the two
+    mirror-image poses a nearly planar palm admits (the thumb CMC sits off the palm
+    plane). With `search=False` only the given start is refined (a pose already found,
+    e.g. with another shape).
     """
     rays, w = _palm_rays(rig, uv, weight)
     P = rest[np.asarray(PALM_KEYPOINTS)] - rest[0][None]
