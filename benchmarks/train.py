@@ -207,9 +207,7 @@ def learn(args) -> None:
     seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)  # both views: predicted once, scored and broken down
     result["both"] = score_predictions(seen.joints, seen.emitted, val_windows, val_cfg, keypoints_2d=seen.keypoints_2d, batch=args.batch)
     result["right dropped"] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=1)
-    valid = np.asarray(seen.targets.valid)
-    axes = metrics.wrist_axes(seen.joints[..., 0, :][valid], seen.targets.joints[..., 0, :][valid])
-    result["wrist_axes"] = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(axes).items()}
+    result["wrist_axes"] = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(seen.wrist_axes()).items()}
     result["baseline"] = _baseline(train.build_index(train_dirs, data_cfg), val_windows, val_cfg)
     write_json(out / "learning.json", result)
     print(json.dumps(result, indent=1))

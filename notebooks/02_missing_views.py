@@ -33,7 +33,6 @@ import time
 import numpy as np
 
 import esther_jax
-from esther_jax import metrics
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
 from esther_jax.train import validation
@@ -71,9 +70,7 @@ figures = [plot_metric_vs_condition(recs, m, list(CONDITIONS), out / f"missing_v
 # Where our network's wrist error lies with both views: per rig-frame axis (x right, y
 # down, z forward) and along / across the line of sight (`metrics.wrist_axes`).
 seen = validation.predict_windows(nets["esther"], windows, held_out, batch=scale.batch)
-valid = np.asarray(seen.targets.valid)
-wrist_axes = metrics.wrist_axes(seen.joints[..., 0, :][valid], seen.targets.joints[..., 0, :][valid])
-axes = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(wrist_axes).items()}
+axes = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(seen.wrist_axes()).items()}
 print("esther wrist, both views:", axes)
 
 # %%

@@ -249,6 +249,12 @@ class Predictions(eqx.Module):
     (`losses.onscreen_label`); a blanked or dropped view holds no hand."""
     fps: Float[Array, "N"]
 
+    def wrist_axes(self) -> metrics.WristAxes:
+        """Where the predicted wrists miss the targets' (`metrics.wrist_axes`), over the
+        frames with a target: per rig-frame axis and along / across the line of sight."""
+        valid = np.asarray(self.targets.valid)
+        return metrics.wrist_axes(self.joints[..., 0, :][valid], self.targets.joints[..., 0, :][valid])
+
 
 def predict_windows(
     net: ESTHER,
