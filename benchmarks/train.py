@@ -5,6 +5,7 @@
     python benchmarks/train.py learn --train DIR --val DIR --out RUN [--config cpu-small]
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
                                      [--set backbone=conv-small ...]
+    python benchmarks/train.py probe --model RUN/stage2/model --data DIR
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
 AdamW update) per config, float32 and bfloat16 compute (`paper` on precomputed features
@@ -34,6 +35,24 @@ showed that the network had learned the wrist's x and z but not its height y. Wr
 `RUN/learning.json`; a finished stage is not trained again (rerun to rescore);
 `--stage2-steps 0` scores stage 1 alone (its 2D error is the number to watch), `--set`
 changes model config fields (the levers: backbone, dim, crop_size, ...).
+
+`probe`: where a trained network keeps and where it loses the wrist position and the
+hand's global orientation. On the windows of `--data` (16-frame windows, stride 16),
+the network's forward pass gives, per frame, the image encoder's joint features F
+(mean over the 21 joints, and the wrist's own token), its triangulated wrist, the motion encoder's features Z (mean
+over joints) and root feature z_root, and the network's own output. A ridge regression
+(standardised inputs) is fitted on the frames of the first half of the clips and scored
+on the rest: per rig-frame axis of the wrist, the correlation with the truth and the mean
+absolute error (mm); for the orientation, the median angle (degrees) between the truth
+and the fitted rotation matrix projected onto SO(3). The triangulated wrist and the
+output are scored as they are (no fit) and next to them the constant answer (the
+fitted half's mean). This is what located the unlearned wrist height of study 07's full
+`cpu-small` model (held-out clips): y is linearly decodable from the wrist's token of F
+(correlation 0.93, 31 mm) and the encoder triangulates it (0.97, 18 mm), but the
+network's wrist does not carry it (0.21, 70 mm); the global orientation is only weakly in
+F (26 degrees against the constant's 36; the network's 31).
+
+    python benchmarks/train.py probe --model RUN/stage2/model --data DIR [--ridge 0.01]
 """
 
 import argparse
@@ -43,6 +62,7 @@ import sys
 import tempfile
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -224,6 +244,91 @@ def learn(args) -> None:
           + f"   along the line of sight {w['along_mm']:.1f} mm, across {w['across_mm']:.1f} mm")  # fmt: skip
 
 
+def _ridge(x_fit: np.ndarray, y_fit: np.ndarray, x_test: np.ndarray, strength: float) -> np.ndarray:
+    """Ridge regression of y on standardised x (with an intercept), fitted on the first
+    set and evaluated on the second; `strength` is the penalty per fitted sample."""
+    mean, sd = x_fit.mean(0), x_fit.std(0) + 1e-9
+    design = lambda x: np.c_[(x - mean) / sd, np.ones(len(x))]  # noqa: E731
+    a = design(x_fit)
+    penalty = strength * len(a) * np.eye(a.shape[1])
+    penalty[-1, -1] = 0.0  # the intercept is not shrunk
+    return design(x_test) @ np.linalg.solve(a.T @ a + penalty, a.T @ y_fit)
+
+
+def _nearest_rotation(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ (vt * np.stack([np.ones_like(d), np.ones_like(d), d], -1)[..., :, None])
+
+
+def probe(model: str, data: str, strength: float) -> None:
+    from esther_jax.clips import list_clips
+    from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
+
+    net = M.load(model)
+    cfg = net.config
+    data_cfg = train.DataConfig(frames=cfg.num_frames, crop_size=cfg.crop_size, stride=cfg.num_frames)
+    clips = list_clips(data)
+    if len(clips) < 4:
+        raise SystemExit(f"probe: {data} holds {len(clips)} clip folders; fitting on half and scoring on the rest needs at least 4")
+    windows = train.build_index(clips, data_cfg)
+    hand = mano.load_builtin("right")
+
+    @eqx.filter_jit
+    def stages(net, clip):
+        out = jax.vmap(lambda c: net(c, hand))(clip)
+        return {
+            "F (image encoder)": out.image.features.mean(axis=2),
+            "F, the wrist's token": out.image.features[:, :, 0],
+            "Z (motion encoder)": out.motion.features.mean(axis=2),
+            "z_root (motion encoder)": out.motion.root,
+            "triangulated wrist": jnp.where(out.image.triangulation_valid[:, :, :1], out.image.triangulated[:, :, 0], jnp.nan),
+            "output": out.joints[:, :, 0],
+            "output orientation": axis_angle_to_matrix(out.params.global_orient),
+        }
+
+    rows, wrist, orient, fit = [], [], [], []
+    half = {str(c) for c in clips[: len(clips) // 2]}
+    for start in range(0, len(windows), 8):
+        chunk = windows[start : start + 8]
+        n = len(chunk)
+        examples = [train.load_example(w, data_cfg) for w in chunk + chunk[-1:] * (8 - n)]  # padded: one compilation
+        clip_b, targets_b = jax.tree.map(lambda *x: np.stack(x), *examples)
+        valid = targets_b.valid[:n]
+        got = jax.device_get(stages(net, clip_b))
+        rows.append({k: v[:n][valid] for k, v in got.items()})
+        wrist.append(targets_b.joints[:n, :, 0][valid])
+        orient.append(np.asarray(axis_angle_to_matrix(targets_b.global_orient[:n][valid])))
+        fit.append(np.repeat([w.clip in half for w in chunk], valid.sum(1)))
+    got = {k: np.concatenate([r[k] for r in rows]) for k in rows[0]}
+    wrist, orient, fit = np.concatenate(wrist), np.concatenate(orient), np.concatenate(fit)
+    test = ~fit
+
+    def wrist_scores(pred):
+        seen = ~np.isnan(pred[:, 0])  # the triangulated wrist: frames where the encoder triangulates it
+        pred, truth = pred[seen], wrist[test][seen]
+        corr = [np.nan if np.allclose(pred[:, i], pred[0, i]) else np.corrcoef(pred[:, i], truth[:, i])[0, 1] for i in range(3)]
+        return corr, 1000 * np.abs(pred - truth).mean(0), seen.mean()
+
+    def angle(pred):
+        return float(np.degrees(np.median(np.asarray(geodesic_angle(jnp.asarray(pred), jnp.asarray(orient[test]))))))
+
+    print(f"{model} on {len(windows)} windows of {data}: fitted on {fit.sum()} frames ({len(half)} clips), scored on {test.sum()}")
+    print(f"{'':<32} {'wrist corr x / y / z':>22} {'wrist MAE mm x / y / z':>24} {'orientation deg':>16}")
+    constant = (np.broadcast_to(wrist[fit].mean(0), wrist[test].shape), _nearest_rotation(np.broadcast_to(orient[fit].mean(0), orient[test].shape)))
+    table = {"constant (fitted mean)": constant}
+    for name in ("F (image encoder)", "F, the wrist's token", "Z (motion encoder)", "z_root (motion encoder)"):
+        x = got[name]
+        table[name + ", linear"] = (_ridge(x[fit], wrist[fit], x[test], strength),
+                                    _nearest_rotation(_ridge(x[fit], orient[fit].reshape(-1, 9), x[test], strength).reshape(-1, 3, 3)))  # fmt: skip
+    table["triangulated wrist"] = (got["triangulated wrist"][test], None)
+    table["network output"] = (got["output"][test], got["output orientation"][test])
+    for name, (w, r) in table.items():
+        corr, mae, share = wrist_scores(w)
+        deg = f"{angle(r):16.1f}" if r is not None else f"{'':>16} (on the {100 * share:.0f} % of frames it triangulates)"
+        print(f"{name:<32} {' / '.join('    -' if np.isnan(c) else f'{c:5.2f}' for c in corr):>22} {' / '.join(f'{e:6.1f}' for e in mae):>24} {deg}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -247,6 +352,10 @@ def main() -> None:
     lp.add_argument("--lr", type=float, default=5e-4)
     lp.add_argument("--validate-every", type=int, default=400)
     lp.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="model config overrides, e.g. backbone=conv-small")
+    pp = sub.add_parser("probe")
+    pp.add_argument("--model", required=True, help="a saved network (a run's model folder)")
+    pp.add_argument("--data", required=True, help="folder of clips with ground truth (held-out clips)")
+    pp.add_argument("--ridge", type=float, default=0.01, help="ridge penalty per fitted frame (inputs standardised)")
     args = parser.parse_args()
     from esther_jax import enable_compilation_cache
 
@@ -255,6 +364,8 @@ def main() -> None:
         bench_steps(args.configs, args.batch, args.dtypes)
     elif args.what == "overfit":
         overfit(args.config, args.stage, args.steps, args.batch)
+    elif args.what == "probe":
+        probe(args.model, args.data, args.ridge)
     else:
         learn(args)
 
