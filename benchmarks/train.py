@@ -259,8 +259,8 @@ def _nearest_rotation(m: np.ndarray) -> np.ndarray:
     """The rotations nearest (Frobenius) to the 3 x 3 matrices `m (..., 3, 3)`: SVD with
     the determinant's sign folded into the last singular vector."""
     u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ (vt * np.stack([np.ones_like(d), np.ones_like(d), d], -1)[..., :, None])
+    vt[..., -1, :] *= np.sign(np.linalg.det(u @ vt))[..., None]
+    return u @ vt
 
 
 def probe(model: str, data: str, strength: float) -> None:
