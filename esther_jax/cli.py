@@ -95,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (appendix E: 2e-4)")
     train.add_argument("--warmup", type=int, default=500, help="linear warm-up steps (appendix E: 500)")
     train.add_argument("--ablation", help="a table-5 row (esther_jax.model.ABLATIONS)")
+    train.add_argument("--triangulated-wrist-input", action="store_true",
+                       help="the wrist query also reads the encoder's triangulated wrist (not in the paper: docs/architecture.md); "
+                       "give it to both stages")
     train.add_argument("--frames", type=int, help="window length (the config's num_frames by default: 16)")
     train.add_argument("--targets", default="gt", choices=["gt", "labels"], help="gt.npz of synthetic clips, or the teacher's labels")
     train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
@@ -307,7 +310,10 @@ def _train(args) -> int:
     if data is None or (args.val and val is None):
         return 2
     try:
-        model_cfg = M.config(args.config, ablation=args.ablation, **({"num_frames": args.frames} if args.frames else {}))
+        overrides = {"num_frames": args.frames} if args.frames else {}
+        if args.triangulated_wrist_input:
+            overrides["triangulated_wrist_input"] = True
+        model_cfg = M.config(args.config, ablation=args.ablation, **overrides)
         cfg = train.TrainConfig(stage=args.stage, steps=args.steps, batch=args.batch, learning_rate=args.lr,
                                 warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every, ema_decay=args.ema,
                                 compute_dtype="bfloat16" if (args.bf16 if args.bf16 is not None else args.config == "paper") else "float32",

@@ -120,6 +120,30 @@ def test_every_ablation_runs_finite(ablation, hand_model):
         assert not bool(jnp.any(out.image.triangulation_valid))
 
 
+def test_triangulated_wrist_input_is_read_only_where_the_triangulation_is_valid(hand_model):
+    base = M.ESTHER(TINY, key=jax.random.key(0))
+    net = M.ESTHER(TINY.replace(triangulated_wrist_input=True), key=jax.random.key(0))
+    # the switch adds one embedding and leaves every other weight's initialisation as it was
+    without = eqx.tree_at(lambda n: n.fusion_decoder.wrist_input, net, None, is_leaf=lambda x: x is None)
+    assert all(bool(jnp.array_equal(a, b)) for a, b in zip(jax.tree.leaves(without), jax.tree.leaves(base), strict=True))
+    clip = random_clip(jax.random.key(1))
+    both, both_base = run(net, clip, hand_model), run(base, clip, hand_model)
+    assert_finite_output(both, FRAMES)
+    assert bool(jnp.all(both.image.triangulation_valid[:, 0]))
+    assert float(jnp.abs(both.decoded.transl - both_base.decoded.transl).max()) > 0
+    # one view blanked throughout: no triangulation, so the input is absent and the two networks agree
+    one = dataclasses.replace(clip, view_present=clip.view_present.at[:, 1].set(False))
+    for a, b in zip(jax.tree.leaves(run(net, one, hand_model)), jax.tree.leaves(run(base, one, hand_model))):
+        np.testing.assert_array_equal(a, b)
+
+    def wrist_given_input(embedding, c):
+        return jnp.sum(eqx.tree_at(lambda n: n.fusion_decoder.wrist_input, net, embedding)(c, hand_model).decoded.transl)
+
+    grad = eqx.filter_jit(eqx.filter_grad(wrist_given_input))
+    assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(grad(net.fusion_decoder.wrist_input, clip))) > 0
+    assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(grad(net.fusion_decoder.wrist_input, one))) == 0
+
+
 def test_cpu_small_runs_finite(hand_model):
     cfg = M.config("cpu-small", num_frames=FRAMES)
     net = M.ESTHER(cfg, key=jax.random.key(0))

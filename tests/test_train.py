@@ -423,6 +423,8 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     assert all(r["windows"] == 2 and r["p_mpjpe_mm"] > 0 and r["keypoints_2d_px"] > 0 and 0 <= r["onscreen_f1"] <= 1 for r in rows)
     assert (run / "curves.png").stat().st_size > 10_000
     assert cli.main(args) == 2 and "already holds a run" in capsys.readouterr().err
+    stage2 = [a if a != str(run) else str(tmp_path / "run2") for a in args] + ["--init", str(run), "--triangulated-wrist-input"]
+    assert cli.main(stage2) == 2 and "triangulated_wrist_input False vs True" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
     labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
     assert labels["right"]["joints"].shape == (8, 21, 3) and labels["left"]["valid"].dtype == bool

@@ -74,6 +74,11 @@ class ModelConfig:
     """Per-token softmax gate over the decoder's sources (False: uniform 1/3, concat-style)."""
     anchored_wrist: bool = False
     """Wrist = triangulated wrist + MLP residual (the table-5 variant), not MLP alone."""
+    triangulated_wrist_input: bool = False
+    """The wrist token's query also reads the image encoder's triangulated wrist (an MLP
+    embedding of it, added where the triangulation is valid): an input, not an anchor, the
+    wrist is still predicted freely. Not in the paper, which keeps the triangulation out of
+    the decoder's inputs; see docs/architecture.md for why and what it measured."""
     monocular: bool = False
     """The second view is always removed (the size-depth binding study's mono model)."""
     # --- training ablations (read by esther_jax.train)

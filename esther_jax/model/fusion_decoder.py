@@ -1,9 +1,11 @@
 """The query-gated fusion decoder (paper 3.7, appendix E).
 
 Per frame 16 pose tokens (MANO joints, root first), one shape token and one wrist
-token. Per layer the clip's tokens self-attend, then read three sources, F (S_img, the
-same frame's 21 joint features), Z (S_mot, the same frame's motion features) and
-z_root (S_root, the clip's root features), mixed by a per-token softmax gate:
+token (with `triangulated_wrist_input`, not in the paper, the wrist token's query also
+carries an embedding of the encoder's triangulated wrist). Per layer the clip's tokens
+self-attend, then read three sources, F (S_img, the same frame's 21 joint features),
+Z (S_mot, the same frame's motion features) and z_root (S_root, the clip's root
+features), mixed by a per-token softmax gate:
 
     q+ = FFN(h + sum_k g^k CrossAttn(h, S_k)),   g = softmax(MLP([h, mean S_k..., e]))
 
@@ -37,6 +39,9 @@ NUM_SOURCES = 3
 NUM_EVIDENCE = 4
 WRIST_PRIOR_M = (0.0, 0.0, 0.4)
 """The wrist MLP predicts an offset from a typical egocentric hand 0.4 m ahead of the rig."""
+WRIST_INPUT_SCALE_M = 0.1
+"""The triangulated wrist enters the wrist query as (t - WRIST_PRIOR_M) / 0.1 m: unit-scale
+inputs, so its small axis (the height y) is not left in a direction of small variance."""
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 
@@ -159,6 +164,8 @@ class FusionDecoder(eqx.Module):
     pose_head: Mlp
     shape_head: Mlp
     wrist_head: Mlp
+    wrist_input: Mlp | None
+    """Embeds the standardised triangulated wrist into the wrist query (None: no such input)."""
     anchored_wrist: bool = eqx.field(static=True)
 
     def __init__(self, cfg: ModelConfig, *, key: PRNGKeyArray):
@@ -171,6 +178,8 @@ class FusionDecoder(eqx.Module):
         self.pose_head = Mlp(d + 6, d, 6, key=keys[3], depth=3)
         self.shape_head = Mlp(d, d, 10, key=keys[4], depth=3)
         self.wrist_head = Mlp(d, d, 3, key=keys[5], depth=3)
+        # its own key, so the switch leaves every other weight's initialisation unchanged
+        self.wrist_input = Mlp(3, d, d, key=jax.random.fold_in(key, 6)) if cfg.triangulated_wrist_input else None
         self.anchored_wrist = cfg.anchored_wrist
 
     @broadcasting
@@ -186,6 +195,11 @@ class FusionDecoder(eqx.Module):
         geometry = triangulated_wrist.dtype  # the outputs' dtype (float32 under mixed precision)
         q = jnp.broadcast_to(self.queries, (T,) + self.queries.shape) + self.time_embed[:T, None, :]
         evidence = evidence.astype(q.dtype)
+        prior = jnp.asarray(WRIST_PRIOR_M, geometry)
+        if self.wrist_input is not None:  # evidence, like the gate's statistics: no gradient into the triangulation
+            seen = jnp.where(wrist_valid[:, None], jax.lax.stop_gradient(triangulated_wrist), prior)
+            embedded = self.wrist_input(((seen - prior) / WRIST_INPUT_SCALE_M).astype(q.dtype))
+            q = q.at[:, WRIST_TOKEN].add(jnp.where(wrist_valid[:, None], embedded, 0.0))
         gates = []
         for layer in self.layers:
             q, gate = layer(q, image_features, motion.features, motion.root, evidence)
@@ -193,7 +207,7 @@ class FusionDecoder(eqx.Module):
         q = self.norm_out(q)
         pose_6d, rotations = jax.vmap(decode_kinematic_tree, in_axes=(None, 0, None))(self.pose_head, q[:, :NUM_POSE_TOKENS], geometry)
         betas = self.shape_head(jnp.mean(q[:, SHAPE_TOKEN], axis=0)).astype(geometry)
-        base = jnp.broadcast_to(jnp.asarray(WRIST_PRIOR_M, geometry), (T, 3))
+        base = jnp.broadcast_to(prior, (T, 3))
         if self.anchored_wrist:
             base = jnp.where(wrist_valid[:, None], triangulated_wrist, base)
         transl = base + self.wrist_head(q[:, WRIST_TOKEN]).astype(geometry)

@@ -382,7 +382,9 @@ def train(
     if init is not None:
         net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
         if net.config != model_cfg:
-            raise ValueError(f"--init {init} is a {net.config.name} network; this run trains {model_cfg.name}")
+            differs = [f"{f.name} {getattr(net.config, f.name)!r} vs {getattr(model_cfg, f.name)!r}"
+                       for f in dataclasses.fields(model_cfg) if getattr(net.config, f.name) != getattr(model_cfg, f.name)]  # fmt: skip
+            raise ValueError(f"--init {init} is another network than this run trains ({'; '.join(differs)})")
     if backbone_weights is not None:
         if not isinstance(net.backbone, M.ViT):
             raise ValueError(f"--backbone-weights loads DINOv3 weights into a ViT backbone; {model_cfg.name} has {model_cfg.backbone}")
