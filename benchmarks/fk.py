@@ -1,5 +1,6 @@
 """MANO forward-kinematics throughput: ours (full mesh and joints-only, forward and
-forward+VJP, float32 and float64) side by side with smplx's MANO layer on the same
+forward+VJP, the keypoints' Jacobian in the parameters by autodiff and through the
+analytic JVP, float32 and float64) side by side with smplx's MANO layer on the same
 model and machine.
 
     python benchmarks/fk.py [--batches 1 64 1024 8192] [--rounds 5] [--json out.json]
@@ -12,6 +13,7 @@ FK at B=1024 >= 3x smplx's throughput; a single hand >= 5x faster than smplx.
 """
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -92,6 +94,16 @@ def smplx_candidates(model: mano.ManoModel, params: mano.ManoParams):
     return {"smplx": forward, "smplx fwd+bwd": forward_backward}
 
 
+def joints_jacobian(model, params, analytic_jvp: bool):
+    """What a fit's Jacobian costs: jacfwd of forward_joints in the parameters."""
+    fn = functools.partial(mano.forward_joints, analytic_jvp=analytic_jvp)
+    return jax.vmap(jax.jacfwd(fn, argnums=1), in_axes=(None, 0))(model, params)
+
+
+analytic_jacobian = jax.jit(functools.partial(joints_jacobian, analytic_jvp=True))
+autodiff_jacobian = jax.jit(functools.partial(joints_jacobian, analytic_jvp=False))
+
+
 def run(batches, rounds: int) -> list[dict]:
     rows = []
     for x64 in (False, True):
@@ -105,6 +117,8 @@ def run(batches, rounds: int) -> list[dict]:
                     "full+vjp": lambda: full_vjp(model, params),
                     "joints": lambda: joints_forward(model, params),
                     "joints+vjp": lambda: joints_vjp(model, params),
+                    "jacfwd autodiff": lambda: autodiff_jacobian(model, params),
+                    "jacfwd analytic": lambda: analytic_jacobian(model, params),
                 }
                 compiled = {name: compile_seconds(fn) for name, fn in ours.items()}
                 candidates = dict(ours)
@@ -134,6 +148,7 @@ def _print_block(rows, batch, dtype):
     for r in block:
         compile_s = f"  compile {r['compile_s']:.2f}s" if r["compile_s"] is not None else ""
         print(f"  {r['method']:<14} {r['ms']:10.3f} ms  {r['hands_per_s']:12.0f} hands/s{compile_s}")
+    print(f"  ratio jacfwd autodiff / analytic JVP: {by['jacfwd autodiff']['ms'] / by['jacfwd analytic']['ms']:6.1f}x")
     if "smplx" in by:
         print(f"  ratio smplx / ours full        : {by['smplx']['ms'] / by['full']['ms']:6.1f}x")
         print(f"  ratio smplx / ours joints-only : {by['smplx']['ms'] / by['joints']['ms']:6.1f}x")

@@ -144,7 +144,7 @@ def frame_params(y: FrameUnknowns, data: FrameData, problem: Problem, round: Rou
 
 def reprojection(problem: Problem, params: mano.ManoParams, data: FrameData) -> Float[Array, "84"]:
     """lambda_2d * Huber 2D residuals of the 21 joints in both views, weighted by confidence."""
-    joints = mano.forward_joints(problem.model, params, check_finite=False)
+    joints = mano.forward_joints(problem.model, params, check_finite=False, analytic_jvp=True)
     uv = problem.rig.project(joints)  # (2, 21, 2)
     e = huber_vector(uv - data.uv, problem.weights.huber_px) * jnp.sqrt(data.weight)[..., None]
     return problem.weights.lambda_2d * e.reshape(84)

@@ -133,6 +133,34 @@ def test_jacobians_match_finite_differences(x64, at_zero):
         assert np.all(np.abs(pose_block).sum(axis=(0, 1, 3)) > 1e-3)
 
 
+def test_analytic_joints_jacobian_equals_autodiff_of_the_full_mesh(x64):
+    # `forward` skins every vertex with plain autodiff: an independent path to the same joints
+    right = mano.load_builtin("right")
+    rng = np.random.default_rng(5)
+    every_corrective = right.replace(posedirs=jnp.asarray(rng.normal(size=right.posedirs.shape) * 1e-3))
+    none = right.replace(posedirs=jnp.zeros_like(right.posedirs))
+    for model in (right, every_corrective, none):
+        for k in (10, 6):
+            params = eqx.tree_at(lambda p: p.betas, random_params(6, jnp.float64), replace_fn=lambda b: b[:k])
+            reference = jax.jacfwd(lambda p: mano.forward(model, p).joints)(params)
+            jac = mano.joints_jacobian(model, params)
+            pose = jnp.concatenate([reference.global_orient[:, :, None], reference.hand_pose], axis=2)
+            np.testing.assert_allclose(jac.pose, pose, atol=1e-12)
+            np.testing.assert_allclose(jac.betas, reference.betas, atol=1e-12)
+            np.testing.assert_allclose(jac.transl, reference.transl, atol=1e-12)
+    # forward_joints with the analytic JVP: the same derivatives in both modes, and in the
+    # model's arrays (a learned hand model) through the autodiff path
+    params = random_params(7, jnp.float64)
+    for derivative in (jax.jacfwd, jax.jacrev):
+        analytic = derivative(lambda p: mano.forward_joints(right, p, analytic_jvp=True))(params)
+        assert tree_allclose(analytic, derivative(lambda p: mano.forward_joints(right, p))(params), atol=1e-12)
+    by_joints = eqx.filter_grad(lambda m: jnp.sum(jnp.sin(mano.forward_joints(m, params, analytic_jvp=True))))(right)
+    by_mesh = eqx.filter_grad(lambda m: jnp.sum(jnp.sin(mano.forward(m, params).joints)))(right)
+    for name in ("v_template", "shapedirs", "weights", "pose_basis", "joint_template", "joint_shapedirs"):
+        np.testing.assert_allclose(getattr(by_joints, name), getattr(by_mesh, name), atol=1e-10, err_msg=name)
+    assert float(jnp.abs(by_joints.joint_shapedirs).max()) > 0
+
+
 def test_float64_mode_matches_float32(x64):
     model64 = mano.load_builtin("right")
     assert model64.v_template.dtype == jnp.float64

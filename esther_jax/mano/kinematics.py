@@ -10,6 +10,8 @@ All 3x3 products are broadcast multiply-adds (`_math.matmul3`): tiny batched
 `dot_general`s are slow on XLA:CPU.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -212,19 +214,162 @@ def _posed_output(model: ManoModel, shaped: ShapedHand, posed: PosedHand) -> Man
     return ManoOutput(vertices=vertices, joints=_keypoints(posed, tips), transforms=_homogeneous(posed))
 
 
-def forward_joints(model: ManoModel, params: ManoParams, *, check_finite: bool = True) -> Float[Array, "21 3"]:
+def forward_joints(
+    model: ManoModel, params: ManoParams, *, check_finite: bool = True, analytic_jvp: bool = False
+) -> Float[Array, "21 3"]:
     """The 21 keypoints of one hand, skinning only the five fingertip vertices.
 
     Exactly `forward(model, params).joints` at a fraction of the cost (what fits use).
     `check_finite=False` skips the run-time NaN check, for solvers whose inputs were
     validated once at their edge.
+    `analytic_jvp=True` gives forward-mode derivatives in the parameters (`jax.jvp`,
+    `jax.jacfwd`) from `joints_jacobian` instead of pushing every tangent through the
+    kinematic chain: what least-squares fits want (their Jacobian about 3x faster,
+    benchmarks/fk.py). Reverse mode then transposes that Jacobian and is about 2x
+    slower than plain autodiff, hence off by default. Derivatives in the model's
+    arrays always take plain autodiff.
     """
     params = _check_params(model, params, check_finite)
+    return (_joints if analytic_jvp else _joints_autodiff)(model, params)
+
+
+def _joints_autodiff(model: ManoModel, params: ManoParams) -> Float[Array, "21 3"]:
     shaped = with_shape(model, params.betas)
     posed = with_pose(model, shaped, params)
     ids = model.fingertip_ids
     tips = _skin(model, posed, shaped, _rest_vertices(model, ids, shaped, posed), model.weights[ids])
     return _keypoints(posed, tips)
+
+
+_joints = jax.custom_jvp(_joints_autodiff)
+
+
+class JointsJacobian(eqx.Module):
+    """Derivatives of the 21 keypoints (metres) in the parameters of one hand."""
+
+    pose: Float[Array, "21 3 16 3"]
+    """In the axis-angle of the 16 joints (row 0 the global orientation), per radian."""
+    betas: Float[Array, "21 3 betas"]
+    """In the shape coefficients (as many as `params.betas` has)."""
+    transl: Float[Array, "21 3 3"]
+    """In the wrist translation."""
+
+
+def _ancestry(parents: tuple[int, ...]) -> np.ndarray:
+    """`A[k, j] = 1` where joint j is joint k or one of its ancestors (static)."""
+    A = np.eye(len(parents))
+    for k in range(len(parents)):
+        j = parents[k]
+        while j >= 0:
+            A[k, j] = 1.0
+            j = parents[j]
+    return A
+
+
+def _cross_columns(u: Float[Array, "*batch 3 c"], v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 c"]:
+    """`u[..., :, c] x v` for every column c."""
+    v = v[..., :, None]
+    return jnp.stack(
+        [u[..., 1, :] * v[..., 2, :] - u[..., 2, :] * v[..., 1, :],
+         u[..., 2, :] * v[..., 0, :] - u[..., 0, :] * v[..., 2, :],
+         u[..., 0, :] * v[..., 1, :] - u[..., 1, :] * v[..., 0, :]], axis=-2)  # fmt: skip
+
+
+def joints_jacobian(model: ManoModel, params: ManoParams) -> JointsJacobian:
+    """The analytic Jacobian of `forward_joints` in the parameters of one hand.
+
+    A change `dtheta_j` of joint j's axis-angle turns everything below j about the
+    world axis `omega_j = R_parent(j) vee(dR_local_j R_local_j^T)`, so a joint k under
+    j moves by `omega_j x (X_k - X_j)`; a fingertip blends that motion of its skinning
+    transforms (weights w_k) and adds its pose-corrective offset, rotated by the blended
+    rotation. A change of betas moves the rest bones (rotated into the world by their
+    parents) and the fingertips' rest vertices; the translation moves everything.
+    Equal to `jax.jacfwd(forward_joints)` to float precision (tested);
+    `forward_joints(..., analytic_jvp=True)` takes its forward-mode derivatives from it.
+    """
+    params = _check_params(model, params, check_finite=False)
+    return _joints_and_jacobian(model, params)[1]
+
+
+def _joints_and_jacobian(model: ManoModel, params: ManoParams) -> tuple[Float[Array, "21 3"], JointsJacobian]:
+    """The keypoints and their `joints_jacobian` from one pass of the kinematics."""
+    betas = _pad_betas(model, params.betas)
+    shaped = with_shape(model, betas)
+    pose = jnp.concatenate([params.global_orient[None], params.hand_pose], axis=0)
+    local = axis_angle_to_matrix(pose)
+    posed = with_rotations(model, shaped, local, params.transl)
+    R, X = posed.rotations, posed.translations
+    parents = np.asarray(model.parents)
+    parent = np.where(parents < 0, 0, parents)
+    eye = jnp.eye(3, dtype=R.dtype)
+    R_parent = jnp.where((parents < 0)[:, None, None], eye[None], R[parent])  # (16, 3, 3)
+    A = jnp.asarray(_ancestry(model.parents), R.dtype)
+
+    # world rotation axis per unit of each axis-angle component: E[j, :, c]
+    d_local = jax.vmap(jax.jacfwd(axis_angle_to_matrix))(pose)  # (16, 3, 3, 3): d local[j, a, b] / d pose[j, c]
+    spin = jnp.einsum("jabc,jdb->jadc", d_local, local)  # dR_local R_local^T, skew in (a, d)
+    axis = 0.5 * jnp.stack([spin[:, 2, 1] - spin[:, 1, 2], spin[:, 0, 2] - spin[:, 2, 0], spin[:, 1, 0] - spin[:, 0, 1]], axis=1)
+    E = matmul3(R_parent, axis)  # (16, 3, 3)
+
+    # joints: d X_k / d pose_j = A[k, j] E_j[:, c] x (X_k - X_j)
+    lever = X[:, None, :] - X[None, :, :]  # (k, j, 3)
+    joints_pose = (_cross_columns(jnp.broadcast_to(E[None], (16, 16, 3, 3)), lever) * A[:, :, None, None]).transpose(0, 2, 1, 3)
+    # fingertips: blend of their skinning transforms k (weights W), about each joint j
+    ids = model.fingertip_ids
+    W = model.weights[ids]  # (5, 16)
+    rest = _rest_vertices(model, ids, shaped, posed)  # (5, 3)
+    P = apply3(jnp.broadcast_to(R, (5, 16, 3, 3)), rest[:, None, :] - shaped.joints[None]) + X[None]  # (5, k, 3): each transform's image of the tip
+    WA = W @ A  # (5, j): weight of the transforms below j
+    M = jnp.einsum("ik,kj,ika->ija", W, A, P) - WA[..., None] * X[None]  # (5, j, 3)
+    tips_pose = _cross_columns(jnp.broadcast_to(E[None], (5, 16, 3, 3)), M).transpose(0, 2, 1, 3)  # (5, 3, j, 3)
+    R_blend = jnp.einsum("ik,kab->iab", W, R)  # (5, 3, 3)
+    if model.pose_feature_ids:
+        basis = jnp.zeros((5, 3, 135), R.dtype).at[:, :, jnp.asarray(model.pose_feature_ids)].set(model.pose_basis[ids])
+        d_rest = jnp.einsum("iajm,jmc->iajc", basis.reshape(5, 3, 15, 9), d_local[1:].reshape(15, 9, 3))
+        corrective = jnp.einsum("iab,ibjc->iajc", R_blend, d_rest)
+        tips_pose = tips_pose + jnp.concatenate([jnp.zeros((5, 3, 1, 3), R.dtype), corrective], axis=2)
+
+    # betas: rest bones rotated by their parents, summed down the chain
+    k = params.betas.shape[0]
+    S = model.joint_shapedirs[..., :k]  # (16, 3, k)
+    bone = jnp.where((parents < 0)[:, None, None], 0.0, S - S[parent])
+    joints_betas = jnp.einsum("kj,jab->kab", A, matmul3(R_parent, bone))
+    tips_betas = (
+        matmul3(R_blend, model.shapedirs[ids][..., :k])
+        - jnp.einsum("ik,kab->iab", W, matmul3(R, S))
+        + jnp.einsum("ik,kab->iab", W, joints_betas)
+    )
+    tips_transl = jnp.sum(W, axis=1)[:, None, None] * eye[None]
+    order = jnp.asarray(KEYPOINT_FROM_MANO)
+    tips = _skin(model, posed, shaped, rest, W)  # = sum_k W_ik P_ik, in the order `forward_joints` sums
+    return _keypoints(posed, tips), JointsJacobian(
+        pose=jnp.concatenate([joints_pose, tips_pose], axis=0)[order],
+        betas=jnp.concatenate([joints_betas, tips_betas], axis=0)[order],
+        transl=jnp.concatenate([jnp.broadcast_to(eye, (16, 3, 3)), tips_transl], axis=0)[order],
+    )
+
+
+def _instantiate(tangent):
+    """A tangent as an array (`symbolic_zeros` rules receive `SymbolicZero`s)."""
+    if isinstance(tangent, jax.custom_derivatives.SymbolicZero):
+        return jnp.zeros(tangent.shape, tangent.dtype)
+    return tangent
+
+
+@functools.partial(_joints.defjvp, symbolic_zeros=True)
+def _joints_jvp(primals, tangents):
+    model, params = primals
+    d_model, d_params = tangents
+    if not all(isinstance(t, jax.custom_derivatives.SymbolicZero) for t in jax.tree.leaves(d_model)):
+        return jax.jvp(_joints_autodiff, primals, jax.tree.map(_instantiate, tangents))
+    joints, jac = _joints_and_jacobian(model, params)
+    d = jax.tree.map(_instantiate, d_params)
+    d_pose = jnp.concatenate([d.global_orient[None], d.hand_pose], axis=0)
+    return joints, (
+        jnp.einsum("kajc,jc->ka", jac.pose, d_pose)
+        + jnp.einsum("kab,b->ka", jac.betas, d.betas)
+        + jnp.einsum("kab,b->ka", jac.transl, d.transl)
+    )
 
 
 def _homogeneous(posed: PosedHand) -> Float[Array, "16 4 4"]:
