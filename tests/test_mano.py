@@ -139,26 +139,29 @@ def test_analytic_joints_jacobian_equals_autodiff_of_the_full_mesh(x64):
     rng = np.random.default_rng(5)
     every_corrective = right.replace(posedirs=jnp.asarray(rng.normal(size=right.posedirs.shape) * 1e-3))
     none = right.replace(posedirs=jnp.zeros_like(right.posedirs))
-    for model in (right, every_corrective, none):
-        for k in (10, 6):
-            params = eqx.tree_at(lambda p: p.betas, random_params(6, jnp.float64), replace_fn=lambda b: b[:k])
-            reference = jax.jacfwd(lambda p: mano.forward(model, p).joints)(params)
-            jac = mano.joints_jacobian(model, params)
-            pose = jnp.concatenate([reference.global_orient[:, :, None], reference.hand_pose], axis=2)
-            np.testing.assert_allclose(jac.pose, pose, atol=1e-12)
-            np.testing.assert_allclose(jac.betas, reference.betas, atol=1e-12)
-            np.testing.assert_allclose(jac.transl, reference.transl, atol=1e-12)
-    # forward_joints with the analytic JVP: the same derivatives in both modes, and in the
-    # model's arrays (a learned hand model) through the autodiff path
+    reference = jax.jit(lambda m, p: jax.jacfwd(lambda q: mano.forward(m, q).joints)(p))
+    with_rule = jax.jit(lambda m, p: jax.jacfwd(lambda q: mano.forward_joints(m, q, analytic_jvp=True))(p))
+    for model, k in ((right, 10), (every_corrective, 6), (none, 10)):
+        params = eqx.tree_at(lambda p: p.betas, random_params(6, jnp.float64), replace_fn=lambda b: b[:k])
+        expected = reference(model, params)
+        assert tree_allclose(with_rule(model, params), expected, rtol=0, atol=1e-12)
+        jac = mano.joints_jacobian(model, params)
+        np.testing.assert_allclose(jac.pose[:, :, 1:], expected.hand_pose, atol=1e-12)
+        np.testing.assert_allclose(jac.betas, expected.betas, atol=1e-12)
+    # reverse mode transposes the rule; derivatives in the model's arrays (a learned hand
+    # model) take the autodiff path
     params = random_params(7, jnp.float64)
-    for derivative in (jax.jacfwd, jax.jacrev):
-        analytic = derivative(lambda p: mano.forward_joints(right, p, analytic_jvp=True))(params)
-        assert tree_allclose(analytic, derivative(lambda p: mano.forward_joints(right, p))(params), atol=1e-12)
-    by_joints = eqx.filter_grad(lambda m: jnp.sum(jnp.sin(mano.forward_joints(m, params, analytic_jvp=True))))(right)
-    by_mesh = eqx.filter_grad(lambda m: jnp.sum(jnp.sin(mano.forward(m, params).joints)))(right)
+    rev = jax.jit(jax.jacrev(lambda p: mano.forward_joints(right, p, analytic_jvp=True)))(params)
+    assert tree_allclose(rev, reference(right, params), rtol=0, atol=1e-12)
+
+    def model_gradient(analytic_jvp):
+        loss = lambda m: jnp.sum(jnp.sin(mano.forward_joints(m, params, analytic_jvp=analytic_jvp)))  # noqa: E731
+        return eqx.filter_jit(eqx.filter_grad(loss))(right)
+
+    by_rule, by_autodiff = model_gradient(True), model_gradient(False)
     for name in ("v_template", "shapedirs", "weights", "pose_basis", "joint_template", "joint_shapedirs"):
-        np.testing.assert_allclose(getattr(by_joints, name), getattr(by_mesh, name), atol=1e-10, err_msg=name)
-    assert float(jnp.abs(by_joints.joint_shapedirs).max()) > 0
+        np.testing.assert_allclose(getattr(by_rule, name), getattr(by_autodiff, name), atol=1e-12, err_msg=name)
+    assert float(jnp.abs(by_rule.joint_shapedirs).max()) > 0
 
 
 def test_float64_mode_matches_float32(x64):

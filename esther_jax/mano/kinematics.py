@@ -4,7 +4,8 @@ Staged as in brentyi/egoallo: `with_shape` (betas -> rest vertices and joints) t
 `with_pose` (rotations -> joint frames), then skinning. The joint regressor is folded
 into the shape basis at model construction, so no call regresses joints from 778+
 vertices. `forward_joints` skins only the five fingertip vertices and is exact
-against `forward` (same blend shapes, same transforms).
+against `forward` (same blend shapes, same transforms); `joints_jacobian` is its
+Jacobian in closed form, which fits use as its forward-mode derivative.
 
 All 3x3 products are broadcast multiply-adds (`_math.matmul3`): tiny batched
 `dot_general`s are slow on XLA:CPU.
@@ -224,8 +225,8 @@ def forward_joints(
     validated once at their edge.
     `analytic_jvp=True` gives forward-mode derivatives in the parameters (`jax.jvp`,
     `jax.jacfwd`) from `joints_jacobian` instead of pushing every tangent through the
-    kinematic chain: what least-squares fits want (their Jacobian about 3x faster,
-    benchmarks/fk.py). Reverse mode then transposes that Jacobian and is about 2x
+    kinematic chain: what least-squares fits want (the keypoints' Jacobian about 4x
+    faster at 64 hands, benchmarks/fk.py). Reverse mode then transposes that Jacobian and is about 2x
     slower than plain autodiff, hence off by default. Derivatives in the model's
     arrays always take plain autodiff.
     """
