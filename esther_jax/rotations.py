@@ -19,6 +19,7 @@ from jaxtyping import Array, Float
 from ._math import eps, matmul3, safe_norm
 
 __all__ = [
+    "axis_angle_left_jacobian",
     "axis_angle_to_matrix",
     "axis_angle_to_quaternion",
     "geodesic_angle",
@@ -70,6 +71,23 @@ def axis_angle_to_matrix(axis_angle: Float[Array, "*batch 3"]) -> Float[Array, "
     row1 = jnp.stack([a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z], -1)
     row2 = jnp.stack([-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)], -1)
     return jnp.stack([row0, row1, row2], -2)
+
+
+def axis_angle_left_jacobian(axis_angle: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """The left Jacobian of SO(3), `J_l = I + c [w]x + d [w]x^2`, c = (1 - cos t) / t^2,
+    d = (t - sin t) / t^3: the change `dw` of a rotation vector turns `R = exp(w)` by the
+    world-frame angle `J_l(w) dw` (`dR = [J_l dw]x R`). Taylor series near t = 0."""
+    x, y, z = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
+    t2 = x * x + y * y + z * z
+    small = t2 < _taylor_threshold(axis_angle)
+    t2_safe = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2_safe)
+    half_sin = jnp.sin(0.5 * t)
+    c = jnp.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, 2.0 * half_sin * half_sin / t2_safe)
+    d = jnp.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - jnp.sin(t)) / (t2_safe * t))
+    K = skew(axis_angle)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=axis_angle.dtype), K.shape)
+    return eye + c[..., None, None] * K + d[..., None, None] * matmul3(K, K)
 
 
 def axis_angle_to_quaternion(axis_angle: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:

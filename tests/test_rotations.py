@@ -101,6 +101,19 @@ def test_axis_angle_to_matrix_jacobians(angle, x64):
         np.testing.assert_allclose(jf, expected, atol=1e-15)
 
 
+def test_left_jacobian_turns_the_rotation_as_its_derivative_does(rotvecs, x64):
+    # dR/dw_c = [J_l e_c]x R, checked against the autodiff derivative of Rodrigues' formula
+    w = jnp.asarray(rotvecs)
+    dR = jax.vmap(jax.jacfwd(rot.axis_angle_to_matrix))(w)  # (n, 3, 3, c)
+    J = rot.axis_angle_left_jacobian(w)
+    turned = jnp.einsum("ncab,nbd->nadc", rot.skew(jnp.swapaxes(J, 1, 2)), rot.axis_angle_to_matrix(w))
+    np.testing.assert_allclose(turned, dR, atol=1e-10)
+    np.testing.assert_allclose(rot.axis_angle_left_jacobian(jnp.zeros(3)), np.eye(3), atol=0)
+    with jax.enable_x64(False):
+        w32 = jnp.asarray(rotvecs, jnp.float32)
+        np.testing.assert_allclose(rot.axis_angle_left_jacobian(w32), J, atol=2e-6)
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-3, 0.5, 2.0, np.pi - 1e-2])
 def test_matrix_to_axis_angle_jacobians(angle, x64):
     axis = np.array([-0.6, 0.2, 0.7]) / np.linalg.norm([-0.6, 0.2, 0.7])

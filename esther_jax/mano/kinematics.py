@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._math import apply3, chunked, matmul3
-from ..rotations import axis_angle_to_matrix
+from ..rotations import axis_angle_left_jacobian, axis_angle_to_matrix, skew
 from .constants import KEYPOINT_FROM_MANO
 from .model import ManoModel, ManoOutput, ManoParams
 
@@ -280,7 +280,8 @@ def joints_jacobian(model: ManoModel, params: ManoParams) -> JointsJacobian:
     """The analytic Jacobian of `forward_joints` in the parameters of one hand.
 
     A change `dtheta_j` of joint j's axis-angle turns everything below j about the
-    world axis `omega_j = R_parent(j) vee(dR_local_j R_local_j^T)`, so a joint k under
+    world axis `omega_j = R_parent(j) J_l(theta_j) dtheta_j` (`J_l` the left Jacobian
+    of SO(3), `rotations.axis_angle_left_jacobian`), so a joint k under
     j moves by `omega_j x (X_k - X_j)`; a fingertip blends that motion of its skinning
     transforms (weights w_k) and adds its pose-corrective offset, rotated by the blended
     rotation. A change of betas moves the rest bones (rotated into the world by their
@@ -307,10 +308,8 @@ def _joints_and_jacobian(model: ManoModel, params: ManoParams) -> tuple[Float[Ar
     A = jnp.asarray(_ancestry(model.parents), R.dtype)
 
     # world rotation axis per unit of each axis-angle component: E[j, :, c]
-    d_local = jax.vmap(jax.jacfwd(axis_angle_to_matrix))(pose)  # (16, 3, 3, 3): d local[j, a, b] / d pose[j, c]
-    spin = jnp.einsum("jabc,jdb->jadc", d_local, local)  # dR_local R_local^T, skew in (a, d)
-    axis = 0.5 * jnp.stack([spin[:, 2, 1] - spin[:, 1, 2], spin[:, 0, 2] - spin[:, 2, 0], spin[:, 1, 0] - spin[:, 0, 1]], axis=1)
-    E = matmul3(R_parent, axis)  # (16, 3, 3)
+    J_left = axis_angle_left_jacobian(pose)  # (16, 3, 3): d local = [J_left d pose]x local
+    E = matmul3(R_parent, J_left)
 
     # joints: d X_k / d pose_j = A[k, j] E_j[:, c] x (X_k - X_j)
     lever = X[:, None, :] - X[None, :, :]  # (k, j, 3)
@@ -326,7 +325,9 @@ def _joints_and_jacobian(model: ManoModel, params: ManoParams) -> tuple[Float[Ar
     R_blend = jnp.einsum("ik,kab->iab", W, R)  # (5, 3, 3)
     if model.pose_feature_ids:
         basis = jnp.zeros((5, 3, 135), R.dtype).at[:, :, jnp.asarray(model.pose_feature_ids)].set(model.pose_basis[ids])
-        d_rest = jnp.einsum("iajm,jmc->iajc", basis.reshape(5, 3, 15, 9), d_local[1:].reshape(15, 9, 3))
+        turn = skew(jnp.swapaxes(J_left[1:], 1, 2))  # (15, c, 3, 3)
+        d_local = matmul3(turn, jnp.broadcast_to(local[1:, None], turn.shape))  # d local[j] / d pose[j, c]
+        d_rest = jnp.einsum("iajm,jcm->iajc", basis.reshape(5, 3, 15, 9), d_local.reshape(15, 3, 9))
         corrective = jnp.einsum("iab,ibjc->iajc", R_blend, d_rest)
         tips_pose = tips_pose + jnp.concatenate([jnp.zeros((5, 3, 1, 3), R.dtype), corrective], axis=2)
 
