@@ -38,7 +38,7 @@ from jaxtyping import Array, Bool, Float
 from esther_jax import mano
 from esther_jax.cameras import StereoRig, apply_transform
 from esther_jax.mano import KEYPOINT_PARENTS, PALM_KEYPOINTS
-from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, matrix_to_axis_angle, skew
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
@@ -222,7 +222,7 @@ def _palm_rays(rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, 
     return rays, jnp.where(valid[:, palm], weight[:, palm], 0.0)
 
 
-class _PalmUnknowns(eqx.Module):
+class PalmUnknowns(eqx.Module):
     rotation: Float[Array, "3"]
     """Rotation vector applied to the start's orientation (rig frame)."""
     wrist_cm: Float[Array, "3"]
@@ -232,7 +232,7 @@ class _PalmUnknowns(eqx.Module):
         return axis_angle_to_matrix(self.rotation) @ R0, t0 + 0.01 * self.wrist_cm
 
 
-def _palm_residuals(y: _PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
+def palm_residuals(y: PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
     """Huber angular residuals of the posed palm in both views (the palm pose's objective)."""
     rig, rays, w, P, R0, t0 = args
     R, t = y.pose(R0, t0)
@@ -241,6 +241,36 @@ def _palm_residuals(y: _PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
     direction = X_views / jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
     e = huber_vector(direction - rays, PNP_HUBER_RAD) * jnp.sqrt(w)[..., None]
     return (e.reshape(-1),)
+
+
+def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36"], Float[Array, "36 6"]]:
+    """`palm_residuals` and its Jacobian in (rotation, wrist_cm), in closed form.
+
+    A change `dw` of the rotation vector turns the posed palm about the world axis
+    `J_l(w) dw` (`axis_angle_left_jacobian`), moving point Q by `-[Q]x J_l dw`; each view
+    rotates that motion into its camera; the unit ray's derivative is the motion's part
+    across the ray over the distance; then the Huber scale's derivative."""
+    rig, rays, w, P, R0, t0 = args
+    R, t = y.pose(R0, t0)
+    Q = P @ R.T
+    turn = -skew(Q) @ axis_angle_left_jacobian(y.rotation)  # (6, 3, 3)
+    dX = jnp.concatenate([turn, jnp.broadcast_to(0.01 * jnp.eye(3, dtype=Q.dtype), (6, 3, 3))], axis=-1)  # (6, 3, 6)
+    X_views = rig.to_views(Q + t[None])  # (2, 6, 3)
+    dX_views = jnp.einsum("vab,ibu->viau", rig.T_cams_rig[:, :3, :3], dX)  # (2, 6, 3, 6)
+    n = jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
+    direction = X_views / n
+    along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
+    d_direction = (dX_views - direction[..., None] * along) / n[..., None]
+    e = direction - rays
+    norm = jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
+    a = jnp.maximum(norm, PNP_HUBER_RAD)
+    q = jnp.sqrt(PNP_HUBER_RAD * (2.0 * a - PNP_HUBER_RAD))
+    scale = q / a  # huber_vector's factor
+    ds_dnorm = jnp.where(norm > PNP_HUBER_RAD, (PNP_HUBER_RAD / q - scale) / a, 0.0)
+    d_norm = jnp.einsum("via,viau->viu", e, d_direction) / norm[..., None]
+    d_e = scale[..., None, None] * d_direction + e[..., None] * (ds_dnorm[..., None] * d_norm)[..., None, :]
+    root_w = jnp.sqrt(w)[..., None]
+    return (e * scale[..., None] * root_w).reshape(36), (d_e * root_w[..., None]).reshape(36, 6)
 
 
 def palm_pose(
@@ -281,9 +311,9 @@ def palm_pose(
         t_starts = jnp.concatenate([t_starts, t_cube.reshape(-1, 3)])
 
     def solve_from(R0, t0):
-        y0 = _PalmUnknowns(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
-        y, _, _ = levenberg_marquardt(_palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS)
-        (res,) = _palm_residuals(y, (rig, rays, w, P, R0, t0))
+        y0 = PalmUnknowns(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
+        y, _, _ = levenberg_marquardt(palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS, jacobian=palm_residuals_and_jacobian)
+        (res,) = palm_residuals(y, (rig, rays, w, P, R0, t0))
         return *y.pose(R0, t0), jnp.sum(res * res)
 
     R, t, cost = jax.vmap(solve_from)(R_starts, t_starts)

@@ -48,10 +48,14 @@ def _flat(residuals: Callable, unravel: Callable, args) -> Callable:
     return f
 
 
-def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int | Int[Array, ""], rtol: float = 1e-3) -> tuple:
+def levenberg_marquardt(
+    residuals: Callable, y0: eqx.Module, args, *, steps: int | Int[Array, ""], rtol: float = 1e-3, jacobian: Callable | None = None
+) -> tuple:
     """`steps` Levenberg-Marquardt steps on one problem: a fixed count, so under `vmap`
     every problem runs in lockstep with no per-problem exit. `steps` may be traced (an
-    array): one compiled program then serves every step count.
+    array): one compiled program then serves every step count. `jacobian(y, args) ->
+    (residuals, J)`, flat (`J` of shape (residuals, unknowns) in `ravel_pytree(y)`'s
+    order), replaces `jax.jacfwd` where a closed form is cheaper.
 
     Damping follows Marquardt (lambda * diag(J^T J), plus a floor), halved after an
     accepted step and quadrupled after a rejected one. Returns (solution, converged,
@@ -62,9 +66,11 @@ def levenberg_marquardt(residuals: Callable, y0: eqx.Module, args, *, steps: int
     dtype = flat0.dtype
     eye = jnp.eye(flat0.shape[0], dtype=dtype)
 
+    jac = jax.jacfwd(f) if jacobian is None else (lambda x: jacobian(unravel(x), args)[1])
+
     def step(_, carry):
         x, res, lam, _ = carry
-        J = jax.jacfwd(f)(x)
+        J = jac(x)
         g = J.T @ res
         H = J.T @ J
         A = H + lam * (jnp.diag(jnp.diag(H)) + 1e-6 * eye)

@@ -1,6 +1,7 @@
 import json
 
 import jax
+from jax.flatten_util import ravel_pytree
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -85,6 +86,26 @@ def test_initialisation_recovers_the_wrist_and_orientation_without_flips():
 
         angle = float(geodesic_angle(axis_angle_to_matrix(init.global_orient[0]), axis_angle_to_matrix(go)))
         assert angle < np.deg2rad(3.0)
+
+
+def test_palm_jacobian_in_closed_form_equals_autodiff():
+    model = mano.load_builtin("right")
+    rest = mano.forward_joints(model, mano.ManoParams.zeros())
+    P = rest[np.asarray(mano.PALM_KEYPOINTS)] - rest[0][None]
+    rng = np.random.default_rng(3)
+    for rig in (cameras.rig_preset("esther"), cameras.rig_preset("hot3d_aria")):
+        rays = jnp.asarray(rng.normal(size=(2, 6, 3)) * 0.05 + np.array([0.0, 0.0, 1.0]), jnp.float32)
+        rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
+        w = jnp.asarray(rng.uniform(0.2, 1.0, size=(2, 6)), jnp.float32).at[1].set(0.0)  # one view unseen
+        for scale in (1e-3, 0.5):  # inside the Huber threshold, then far outside it
+            y = evidence.PalmUnknowns(jnp.asarray(rng.normal(size=3) * scale, jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32))
+            args = (rig, rays, w, P, jnp.eye(3), jnp.asarray([0.0, 0.0, 0.45]))
+            residuals, jacobian = evidence.palm_residuals_and_jacobian(y, args)
+            flat, unravel = ravel_pytree(y)
+            expected = jax.jacfwd(lambda x: evidence.palm_residuals(unravel(x), args)[0])(flat)
+            np.testing.assert_allclose(residuals, evidence.palm_residuals(y, args)[0], atol=1e-7)
+            np.testing.assert_allclose(jacobian, expected, atol=2e-6 * float(jnp.abs(expected).max()))
+            assert float(jnp.abs(jacobian[18:]).max()) == 0.0  # the unseen view's rows
 
 
 def test_priors_are_residual_callables():
