@@ -42,7 +42,7 @@ from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix,
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
-from .priors import huber_vector
+from .priors import huber_factor, huber_vector, vector_norm
 from .solve import levenberg_marquardt
 
 DEPTH_RANGE_M = (0.1, 1.0)
@@ -223,6 +223,8 @@ def _palm_rays(rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, 
 
 
 class PalmUnknowns(eqx.Module):
+    """Unknowns of the palm pose, relative to a start `(R0, t0)`."""
+
     rotation: Float[Array, "3"]
     """Rotation vector applied to the start's orientation (rig frame)."""
     wrist_cm: Float[Array, "3"]
@@ -262,11 +264,8 @@ def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36
     along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
     d_direction = (dX_views - direction[..., None] * along) / n[..., None]
     e = direction - rays
-    norm = jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
-    a = jnp.maximum(norm, PNP_HUBER_RAD)
-    q = jnp.sqrt(PNP_HUBER_RAD * (2.0 * a - PNP_HUBER_RAD))
-    scale = q / a  # huber_vector's factor
-    ds_dnorm = jnp.where(norm > PNP_HUBER_RAD, (PNP_HUBER_RAD / q - scale) / a, 0.0)
+    norm = vector_norm(e)
+    scale, ds_dnorm = jax.jvp(lambda n: huber_factor(n, PNP_HUBER_RAD), (norm,), (jnp.ones_like(norm),))  # elementwise
     d_norm = jnp.einsum("via,viau->viu", e, d_direction) / norm[..., None]
     d_e = scale[..., None, None] * d_direction + e[..., None] * (ds_dnorm[..., None] * d_norm)[..., None, :]
     root_w = jnp.sqrt(w)[..., None]

@@ -32,11 +32,20 @@ def huber_residual(r: Array, delta: float | Array) -> Array:
     return r * jnp.sqrt(delta * (2.0 * a - delta)) / a
 
 
+def vector_norm(e: Float[Array, "*batch d"]) -> Float[Array, "*batch"]:
+    """The length of each vector, smoothed at 0 (finite gradient): what `huber_vector` scales by."""
+    return jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
+
+
+def huber_factor(norm: Array, delta: float | Array) -> Array:
+    """The factor `huber_vector` multiplies a vector of length `norm` by (1 up to `delta`)."""
+    a = jnp.maximum(norm, delta)
+    return jnp.sqrt(delta * (2.0 * a - delta)) / a
+
+
 def huber_vector(e: Float[Array, "*batch d"], delta: float | Array) -> Float[Array, "*batch d"]:
     """Isotropic Huber on the norm of each vector (e.g. a 2D reprojection error)."""
-    n = jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
-    a = jnp.maximum(n, delta)
-    return e * (jnp.sqrt(delta * (2.0 * a - delta)) / a)[..., None]
+    return e * huber_factor(vector_norm(e), delta)[..., None]
 
 
 class MotionPrior(eqx.Module):
