@@ -240,7 +240,7 @@ def palm_residuals(y: PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
     R, t = y.pose(R0, t0)
     X = (P @ R.T) + t[None]
     X_views = rig.to_views(X)  # (2, 6, 3)
-    direction = X_views / jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
+    direction = X_views / vector_norm(X_views)[..., None]
     e = huber_vector(direction - rays, PNP_HUBER_RAD) * jnp.sqrt(w)[..., None]
     return (e.reshape(-1),)
 
@@ -259,7 +259,7 @@ def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36
     dX = jnp.concatenate([turn, jnp.broadcast_to(0.01 * jnp.eye(3, dtype=Q.dtype), (6, 3, 3))], axis=-1)  # (6, 3, 6)
     X_views = rig.to_views(Q + t[None])  # (2, 6, 3)
     dX_views = jnp.einsum("vab,ibu->viau", rig.T_cams_rig[:, :3, :3], dX)  # (2, 6, 3, 6)
-    n = jnp.sqrt(jnp.sum(X_views * X_views, axis=-1, keepdims=True) + 1e-12)
+    n = vector_norm(X_views)[..., None]
     direction = X_views / n
     along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
     d_direction = (dX_views - direction[..., None] * along) / n[..., None]
