@@ -1,7 +1,7 @@
 """MANO hand model: arrays, parameters, forward kinematics, conventions, I/O.
 
 Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch`, `forward_joints`,
-`joints_jacobian`, `JointsJacobian`, `forward_rotations`, `with_shape`, `with_pose`, `with_rotations`,
+`joints_jacobian`, `forward_joints_with_jacobian`, `JointsJacobian`, `forward_rotations`, `with_shape`, `with_pose`, `with_rotations`,
 `rest_joints`, `load_builtin`, `load_mano_pkl`, `save_mano_pkl`, `model_id`, `mirror_params`,
 `mirror_points`, `to_smplx`, `from_smplx`, `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`,
 `export_mesh`, `anatomical_frames`, `JOINT_LIMITS`, `PosePrior`, and the joint-order constants.
@@ -35,6 +35,7 @@ from .kinematics import forward_batch as forward_batch
 from .kinematics import forward_joints as forward_joints
 from .kinematics import JointsJacobian as JointsJacobian
 from .kinematics import forward_rotations as forward_rotations
+from .kinematics import forward_joints_with_jacobian as forward_joints_with_jacobian
 from .kinematics import joints_jacobian as joints_jacobian
 from .kinematics import rest_joints as rest_joints
 from .kinematics import with_pose as with_pose

@@ -289,8 +289,14 @@ def joints_jacobian(model: ManoModel, params: ManoParams) -> JointsJacobian:
     Equal to `jax.jacfwd(forward_joints)` to float precision (tested);
     `forward_joints(..., analytic_jvp=True)` takes its forward-mode derivatives from it.
     """
-    params = _check_params(model, params, check_finite=False)
-    return _joints_and_jacobian(model, params)[1]
+    return forward_joints_with_jacobian(model, params, check_finite=False)[1]
+
+
+def forward_joints_with_jacobian(model: ManoModel, params: ManoParams, *, check_finite: bool = True) -> tuple[Float[Array, "21 3"], JointsJacobian]:
+    """`forward_joints` and `joints_jacobian` from one pass of the kinematics (what a
+    least-squares fit with a closed-form Jacobian wants)."""
+    params = _check_params(model, params, check_finite)
+    return _joints_and_jacobian(model, params)
 
 
 def _joints_and_jacobian(model: ManoModel, params: ManoParams) -> tuple[Float[Array, "21 3"], JointsJacobian]:

@@ -40,3 +40,20 @@ class PosePrior(eqx.Module):
         angles = hand_pose_to_anatomical(hand_pose, self.frames)
         excess = jnp.maximum(angles - self.upper, 0.0) + jnp.maximum(self.lower - angles, 0.0)
         return jnp.concatenate([z, self.limit_weight * excess.reshape(45)])
+
+    def normal_equations(self, hand_pose: Float[Array, "15 3"]) -> tuple[Float[Array, "45"], Float[Array, "45 45"]]:
+        """The Gauss-Newton gradient J^T r and matrix J^T J of `self(hand_pose)` in the 45
+        pose parameters, in closed form (what a least-squares fit adds to its own): the
+        PCA part's Jacobian is the whitening; a hinge's is +-limit_weight times its joint's
+        anatomical axis where the limit is exceeded, 0 inside, so its share is block
+        diagonal (one 3x3 block per joint)."""
+        centred = hand_pose.reshape(45) - self.mean
+        z = self.whitening @ centred
+        angles = hand_pose_to_anatomical(hand_pose, self.frames)
+        above, below = angles > self.upper, angles < self.lower
+        excess = jnp.where(above, angles - self.upper, 0.0) + jnp.where(below, self.lower - angles, 0.0)
+        slope = self.limit_weight * (above.astype(angles.dtype) - below.astype(angles.dtype))  # d residual / d angle
+        g_limits = jnp.einsum("jai,ji->ja", self.frames, slope * self.limit_weight * excess)
+        blocks = jnp.einsum("jai,jbi->jab", self.frames * slope[:, None, :], self.frames * slope[:, None, :])
+        H_limits = jnp.einsum("jk,jab->jakb", jnp.eye(15, dtype=blocks.dtype), blocks).reshape(45, 45)
+        return self.whitening.T @ z + g_limits.reshape(45), self.whitening.T @ self.whitening + H_limits
