@@ -42,8 +42,8 @@ from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix,
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
-from .priors import huber_factor, huber_vector, vector_norm
-from .solve import levenberg_marquardt
+from .priors import huber_vector, huber_vector_with_jacobian, vector_norm
+from .solve import gauss_newton, levenberg_marquardt
 
 DEPTH_RANGE_M = (0.1, 1.0)
 BONE_TOLERANCE = 0.4
@@ -263,13 +263,14 @@ def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36
     direction = X_views / n
     along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
     d_direction = (dX_views - direction[..., None] * along) / n[..., None]
-    e = direction - rays
-    norm = vector_norm(e)
-    scale, ds_dnorm = jax.jvp(lambda n: huber_factor(n, PNP_HUBER_RAD), (norm,), (jnp.ones_like(norm),))  # elementwise
-    d_norm = jnp.einsum("via,viau->viu", e, d_direction) / norm[..., None]
-    d_e = scale[..., None, None] * d_direction + e[..., None] * (ds_dnorm[..., None] * d_norm)[..., None, :]
+    e, d_e = huber_vector_with_jacobian(direction - rays, d_direction, PNP_HUBER_RAD)
     root_w = jnp.sqrt(w)[..., None]
-    return (e * scale[..., None] * root_w).reshape(36), (d_e * root_w[..., None]).reshape(36, 6)
+    return (e * root_w).reshape(36), (d_e * root_w[..., None]).reshape(36, 6)
+
+
+def palm_normal_equations(y: PalmUnknowns, args) -> tuple[Float[Array, "6"], Float[Array, "6 6"]]:
+    """The palm objective's Gauss-Newton gradient and matrix from the closed-form Jacobian."""
+    return gauss_newton(*palm_residuals_and_jacobian(y, args))
 
 
 def palm_pose(
@@ -311,7 +312,7 @@ def palm_pose(
 
     def solve_from(R0, t0):
         y0 = PalmUnknowns(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
-        y, _, _ = levenberg_marquardt(palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS, jacobian=palm_residuals_and_jacobian)
+        y, _, _ = levenberg_marquardt(palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS, normal_equations=palm_normal_equations)
         (res,) = palm_residuals(y, (rig, rays, w, P, R0, t0))
         return *y.pose(R0, t0), jnp.sum(res * res)
 

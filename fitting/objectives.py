@@ -24,14 +24,18 @@ refit, from its neighbours.
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from esther_jax import mano
 from esther_jax.cameras import StereoRig
 from esther_jax.rotations import axis_angle_to_matrix, geodesic_angle
 
-from .priors import MotionPrior, huber_residual, huber_vector
+from .priors import MotionPrior, huber_residual, huber_vector, huber_vector_with_jacobian
+from .solve import gauss_newton
 
 
 class FitWeights(eqx.Module):
@@ -69,6 +73,11 @@ class FrameUnknowns(eqx.Module):
     """Wrist offset from `FrameData.anchor`, centimetres."""
     betas: Float[Array, "*batch 10"]
     """Shape offset from `Problem.betas`; it acts only while `Round.free_betas` is 1."""
+
+
+FLAT_ORIENT, FLAT_POSE, FLAT_TRANSL, FLAT_BETAS = np.r_[0:3], np.r_[3:48], np.r_[48:51], np.r_[51:61]
+"""Where each field of one frame's `FrameUnknowns` sits in `ravel_pytree`'s flat vector
+(the fields' order): the layout of `frame_normal_equations` and of the solver's steps."""
 
 
 class FrameData(eqx.Module):
@@ -144,28 +153,38 @@ def frame_params(y: FrameUnknowns, data: FrameData, problem: Problem, round: Rou
 
 def reprojection(problem: Problem, params: mano.ManoParams, data: FrameData) -> Float[Array, "84"]:
     """lambda_2d * Huber 2D residuals of the 21 joints in both views, weighted by confidence."""
-    joints = mano.forward_joints(problem.model, params, check_finite=False, analytic_jvp=True)
+    joints = mano.forward_joints(problem.model, params, check_finite=False)
     uv = problem.rig.project(joints)  # (2, 21, 2)
     e = huber_vector(uv - data.uv, problem.weights.huber_px) * jnp.sqrt(data.weight)[..., None]
     return problem.weights.lambda_2d * e.reshape(84)
 
 
-def frame_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Array, ...]:
-    """All terms of one frame's objective (see the module docstring)."""
+def reprojection_with_jacobian(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Float[Array, "84"], Float[Array, "84 61"]]:
+    """`reprojection` at the unknowns and its Jacobian in them (flat, `ravel_pytree(y)`'s
+    order), in closed form: the keypoints' (`mano.forward_joints_with_jacobian`), each
+    view's projection of each keypoint (forward mode in its 3 coordinates), then the Huber
+    scale's (`huber_vector_with_jacobian`)."""
+    problem, data, _, round = args
+    params = frame_params(y, data, problem, round)
+    joints, jac = mano.forward_joints_with_jacobian(problem.model, params, check_finite=False)
+    # d joints / d (global_orient, hand_pose, transl_cm, betas): FLAT_ORIENT, FLAT_POSE, FLAT_TRANSL, FLAT_BETAS
+    d_joints = jnp.concatenate([jac.pose.reshape(21, 3, 48), 0.01 * jac.transl, round.free_betas * jac.betas], axis=-1)
+    project = lambda X: (problem.rig.project(X), problem.rig.project(X))  # noqa: E731 - the value rides along as jacfwd's aux
+    d_uv, uv = jax.vmap(jax.jacfwd(project, has_aux=True))(joints)  # (21, 2, 2, 3), (21, 2, 2)
+    d_uv = jnp.einsum("kvab,kbn->vkan", d_uv, d_joints)
+    e, d_e = huber_vector_with_jacobian(jnp.swapaxes(uv, 0, 1) - data.uv, d_uv, problem.weights.huber_px)
+    scale = problem.weights.lambda_2d * jnp.sqrt(data.weight)[..., None]
+    return (scale * e).reshape(84), (scale[..., None] * d_e).reshape(84, -1)
+
+
+def coupled_terms(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Array, ...]:
+    """The terms that couple several unknowns besides the 2D reprojection: the motion
+    stage's depth anchor (1 residual) and the wrist's speed limits (4)."""
     problem, data, track, round = args
     w = problem.weights
     params = frame_params(y, data, problem, round)
-    terms = [
-        reprojection(problem, params, data),
-        round.pose_scale * w.lambda_pose * problem.pose_prior(y.hand_pose),
-        w.lambda_betas * y.betas,
-        (1.0 - round.motion) * w.lambda_wrist * data.anchor_weight * y.transl_cm,
-    ]
     dz_cm = jnp.dot(params.transl - data.anchor, data.depth_axis) * 100.0
-    terms.append(round.motion * w.lambda_depth * data.anchor_weight * huber_residual(dz_cm, w.depth_huber_cm)[None])
-    pose = jnp.concatenate([y.global_orient[None], y.hand_pose])
-    terms.append(jnp.sqrt(track.weight) * (pose - track.pose_target).reshape(48))
-    terms.append(jnp.sqrt(track.weight) * 100.0 * (params.transl - track.transl_target))
+    terms = [round.motion * w.lambda_depth * data.anchor_weight * huber_residual(dz_cm, w.depth_huber_cm)[None]]
     R = axis_angle_to_matrix(y.global_orient)
     for orient, t, present in (
         (track.orient_previous, track.transl_previous, track.has_previous),
@@ -176,3 +195,69 @@ def frame_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Rou
         terms.append(present * w.lambda_angular * huber_residual(jnp.maximum(omega - w.omega_max, 0.0), 1.0)[None])
         terms.append(present * w.lambda_linear * huber_residual(jnp.maximum(speed - w.v_max, 0.0), 0.1)[None])
     return tuple(terms)
+
+
+def pose_prior_weight(args: tuple[Problem, FrameData, Track, Round]) -> Float[Array, ""]:
+    """What the pose prior's residuals are multiplied by in this round."""
+    problem, _, _, round = args
+    return round.pose_scale * problem.weights.lambda_pose
+
+
+def per_unknown_terms(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[FrameUnknowns, ...]:
+    """The terms each residual of which depends on the one unknown it is stored at (so
+    their Jacobians are diagonal): the shape prior, the wrist anchor and the pull towards
+    the smoothed track (rotations, then the wrist in the second term)."""
+    problem, data, track, round = args
+    w = problem.weights
+    pull = jnp.sqrt(track.weight)
+    zero = jax.tree.map(jnp.zeros_like, y)
+    anchors = FrameUnknowns(
+        pull * (y.global_orient - track.pose_target[0]),
+        pull * (y.hand_pose - track.pose_target[1:]),
+        (1.0 - round.motion) * w.lambda_wrist * data.anchor_weight * y.transl_cm,
+        w.lambda_betas * y.betas,
+    )
+    transl = data.anchor + 0.01 * y.transl_cm
+    track_wrist = eqx.tree_at(lambda u: u.transl_cm, zero, pull * 100.0 * (transl - track.transl_target))
+    return anchors, track_wrist
+
+
+def frame_residuals(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Array, ...]:
+    """All terms of one frame's objective (see the module docstring)."""
+    problem, data, _, round = args
+    return (
+        reprojection(problem, frame_params(y, data, problem, round), data),
+        *coupled_terms(y, args),
+        pose_prior_weight(args) * problem.pose_prior(y.hand_pose),
+        *(ravel_pytree(term)[0] for term in per_unknown_terms(y, args)),
+    )
+
+
+def frame_normal_equations(y: FrameUnknowns, args: tuple[Problem, FrameData, Track, Round]) -> tuple[Float[Array, "61"], Float[Array, "61 61"]]:
+    """`frame_residuals`' Gauss-Newton gradient J^T r and matrix J^T J (flat, in
+    `ravel_pytree(y)`'s order), assembled from the objective's structure instead of its
+    whole Jacobian: the 2D reprojection's Jacobian in closed form
+    (`reprojection_with_jacobian`), the other coupled terms' by forward-mode autodiff
+    in the wrist's 6 unknowns, the pose prior's in closed form in the 45 pose unknowns
+    (`PosePrior.normal_equations`), the per-unknown terms' as diagonals.
+    Equal to `solve.gauss_newton` of the full Jacobian (tested), with about a third of
+    its rows in the dense product."""
+    problem = args[0]
+    g, H = gauss_newton(*reprojection_with_jacobian(y, args))
+    # the depth anchor and speed limits, in the wrist's orientation and position only
+    wrist = np.r_[FLAT_ORIENT, FLAT_TRANSL]
+    flat, unravel = ravel_pytree(y)
+    both = lambda r: (r, r)  # noqa: E731 - jacfwd's auxiliary output: the residuals themselves
+    coupled = lambda x: both(jnp.concatenate([r.reshape(-1) for r in coupled_terms(unravel(flat.at[wrist].set(x)), args)]))  # noqa: E731
+    J, r = jax.jacfwd(coupled, has_aux=True)(flat[wrist])
+    g_wrist, H_wrist = gauss_newton(r, J)
+    g, H = g.at[wrist].add(g_wrist), H.at[np.ix_(wrist, wrist)].add(H_wrist)
+    # the pose prior, in the 45 pose unknowns
+    g_pose, H_pose = problem.pose_prior.normal_equations(y.hand_pose)
+    weight2 = pose_prior_weight(args) ** 2
+    g, H = g.at[FLAT_POSE].add(weight2 * g_pose), H.at[np.ix_(FLAT_POSE, FLAT_POSE)].add(weight2 * H_pose)
+    # the per-unknown terms: a diagonal Jacobian is its product with a vector of ones
+    terms, diagonals = jax.jvp(lambda u: per_unknown_terms(u, args), (y,), (jax.tree.map(jnp.ones_like, y),))
+    flat_terms = [(ravel_pytree(term)[0], ravel_pytree(diagonal)[0]) for term, diagonal in zip(terms, diagonals)]
+    g = g + sum(d * r for r, d in flat_terms)
+    return g, H + jnp.diag(sum(d * d for _, d in flat_terms))

@@ -21,6 +21,7 @@ is `prior(trajectory (window, features)) -> residuals (n,)`.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -46,6 +47,17 @@ def huber_factor(norm: Array, delta: float | Array) -> Array:
 def huber_vector(e: Float[Array, "*batch d"], delta: float | Array) -> Float[Array, "*batch d"]:
     """Isotropic Huber on the norm of each vector (e.g. a 2D reprojection error)."""
     return e * huber_factor(vector_norm(e), delta)[..., None]
+
+
+def huber_vector_with_jacobian(
+    e: Float[Array, "*batch d"], de: Float[Array, "*batch d n"], delta: float | Array
+) -> tuple[Float[Array, "*batch d"], Float[Array, "*batch d n"]]:
+    """`huber_vector(e, delta)` and its Jacobian in n unknowns, given e's Jacobian `de`
+    (the chain rule through the norm: the factor's slope times d|e| = e . de / |e|)."""
+    norm = vector_norm(e)
+    factor, slope = jax.jvp(lambda n: huber_factor(n, delta), (norm,), (jnp.ones_like(norm),))  # elementwise
+    d_norm = jnp.einsum("...a,...an->...n", e, de) / norm[..., None]
+    return e * factor[..., None], factor[..., None, None] * de + e[..., None] * (slope[..., None] * d_norm)[..., None, :]
 
 
 class MotionPrior(eqx.Module):

@@ -22,6 +22,7 @@ dependency.
 All take residuals `fn(y, args) -> tuple of arrays` with `y` a Module of unknowns.
 """
 
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
@@ -30,7 +31,7 @@ import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Bool, Int
+from jaxtyping import Array, Bool, Float, Int
 
 SOLVERS = ("lm", "dogleg", "optx-lm")
 
@@ -48,14 +49,22 @@ def _flat(residuals: Callable, unravel: Callable, args) -> Callable:
     return f
 
 
+def gauss_newton(residuals: Float[Array, "m"], jacobian: Float[Array, "m n"]) -> tuple[Float[Array, "n"], Float[Array, "n n"]]:
+    """The Gauss-Newton gradient J^T r and matrix J^T J of residuals r with Jacobian J."""
+    return jacobian.T @ residuals, jacobian.T @ jacobian
+
+
 def levenberg_marquardt(
-    residuals: Callable, y0: eqx.Module, args, *, steps: int | Int[Array, ""], rtol: float = 1e-3, jacobian: Callable | None = None
+    residuals: Callable, y0: eqx.Module, args, *, steps: int | Int[Array, ""], rtol: float = 1e-3, normal_equations: Callable | None = None
 ) -> tuple:
     """`steps` Levenberg-Marquardt steps on one problem: a fixed count, so under `vmap`
     every problem runs in lockstep with no per-problem exit. `steps` may be traced (an
-    array): one compiled program then serves every step count. `jacobian(y, args) ->
-    (residuals, J)`, flat (`J` of shape (residuals, unknowns) in `ravel_pytree(y)`'s
-    order), replaces `jax.jacfwd` where a closed form is cheaper.
+    array): one compiled program then serves every step count.
+
+    `normal_equations(y, args) -> (J^T r, J^T J)` (flat, in `ravel_pytree(y)`'s order)
+    replaces forming them from `jax.jacfwd` of the concatenated residuals where the
+    objective's structure makes them cheaper (a closed-form Jacobian, terms that touch
+    few unknowns); `residuals` still gives the cost.
 
     Damping follows Marquardt (lambda * diag(J^T J), plus a floor), halved after an
     accepted step and quadrupled after a rejected one. Returns (solution, converged,
@@ -66,13 +75,14 @@ def levenberg_marquardt(
     dtype = flat0.dtype
     eye = jnp.eye(flat0.shape[0], dtype=dtype)
 
-    jac = jax.jacfwd(f) if jacobian is None else (lambda x: jacobian(unravel(x), args)[1])
+    if normal_equations is None:
+        linearise = lambda x, res: gauss_newton(res, jax.jacfwd(f)(x))  # noqa: E731
+    else:
+        linearise = lambda x, res: normal_equations(unravel(x), args)  # noqa: E731
 
     def step(_, carry):
         x, res, lam, _ = carry
-        J = jac(x)
-        g = J.T @ res
-        H = J.T @ J
+        g, H = linearise(x, res)
         A = H + lam * (jnp.diag(jnp.diag(H)) + 1e-6 * eye)
         dx = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), g)
         trial = f(x + dx)
@@ -110,7 +120,9 @@ def make_solver(name: str) -> Callable:
     raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
 
 
-def solve_batch(residuals: Callable, y0, shared, per_item, *, steps: int | Int[Array, ""], solver: str = "lm") -> Solution:
+def solve_batch(
+    residuals: Callable, y0, shared, per_item, *, steps: int | Int[Array, ""], solver: str = "lm", normal_equations: Callable | None = None
+) -> Solution:
     """Solve `residuals(y, (shared, *per_item))` for every item of a leading batch axis.
 
     Args:
@@ -121,8 +133,12 @@ def solve_batch(residuals: Callable, y0, shared, per_item, *, steps: int | Int[A
         per_item: tuple of batched per-item arguments (`FrameData`, `Track`).
         steps: solver steps per item (a traced count only for "lm"; optimistix's
             solvers take a Python int, their maximum).
+        normal_equations: the objective's own `(J^T r, J^T J)` with the residuals'
+            signature ("lm" only: optimistix's solvers linearise `residuals` themselves).
     """
     run = make_solver(solver)
+    if normal_equations is not None and solver == "lm":
+        run = functools.partial(run, normal_equations=normal_equations)
     problem, *rest = shared
 
     def one(y, item):

@@ -21,7 +21,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from esther_jax import mano
@@ -29,7 +28,7 @@ from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle, mat
 
 from . import solve
 from .evidence import Evidence, Initial
-from .objectives import FrameData, FrameUnknowns, Problem, Round, Track, frame_residuals
+from .objectives import FLAT_BETAS, FrameData, FrameUnknowns, Problem, Round, Track, frame_normal_equations, frame_residuals
 
 
 class Fits(eqx.Module):
@@ -90,7 +89,7 @@ def solve_round(
 @functools.partial(jax.jit, static_argnames=("solver", "max_steps"))
 def _solve_round(problem, y0, data, track, round, steps, *, solver: str, max_steps: int | None) -> solve.Solution:
     steps = steps if max_steps is None else max_steps
-    return solve.solve_batch(frame_residuals, y0, (problem, round), (data, track), steps=steps, solver=solver)
+    return solve.solve_batch(frame_residuals, y0, (problem, round), (data, track), steps=steps, solver=solver, normal_equations=frame_normal_equations)
 
 
 def _unknowns(fits: Fits, data: FrameData, betas0: Float[Array, "10"]) -> FrameUnknowns:
@@ -153,12 +152,8 @@ def pooled_betas(problem: Problem, y: FrameUnknowns, data: FrameData, track: Tra
     lam2 = problem.weights.lambda_betas**2
 
     def information(y1: FrameUnknowns, d1: FrameData, t1: Track):
-        flat, unravel = ravel_pytree(y1)
-        f = lambda x: jnp.concatenate([r.reshape(-1) for r in frame_residuals(unravel(x), (problem, d1, t1, round))])  # noqa: E731
-        r = f(flat)
-        J = jax.jacfwd(f)(flat)
-        H, g = J.T @ J, J.T @ r
-        k = flat.shape[0] - 10  # the betas are the last leaf of FrameUnknowns
+        g, H = frame_normal_equations(y1, (problem, d1, t1, round))
+        k = int(FLAT_BETAS[0])  # the betas are the last unknowns
         H_oo = H[:k, :k] + 1e-6 * (jnp.trace(H[:k, :k]) / k + 1.0) * jnp.eye(k, dtype=H.dtype)
         eliminate = jnp.linalg.solve(H_oo, jnp.concatenate([H[:k, k:], g[:k, None]], axis=1))
         S = H[k:, k:] - H[k:, :k] @ eliminate[:, :10]

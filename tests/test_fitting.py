@@ -108,12 +108,55 @@ def test_palm_jacobian_in_closed_form_equals_autodiff():
             assert float(jnp.abs(jacobian[18:]).max()) == 0.0  # the unseen view's rows
 
 
+def test_normal_equations_from_the_objectives_structure_equal_the_full_jacobians(x64):
+    """`frame_normal_equations` (closed-form reprojection and pose-prior Jacobians,
+    diagonal terms) equals J^T r, J^T J of forward-mode autodiff through all of
+    `frame_residuals`, in every kind of round, on a fisheye rig with divergent views."""
+    from fitting import objectives as O, solve
+
+    rig = cameras.rig_preset("esther")
+    model = mano.load_builtin("right")
+    rng = np.random.default_rng(5)
+    frames = 3
+    normal = lambda *shape, s=1.0: jnp.asarray(rng.normal(size=shape) * s)  # noqa: E731
+    y = O.FrameUnknowns(normal(frames, 3, s=0.5), normal(frames, 15, 3, s=0.6), normal(frames, 3), normal(frames, 10, s=0.5))
+    anchor = jnp.asarray([[0.05, 0.1, 0.35]]) + normal(frames, 3, s=0.02)
+    params = jax.vmap(lambda yi, a: mano.ManoParams(yi.global_orient, yi.hand_pose, yi.betas, a))(y, anchor)
+    uv = jax.vmap(lambda p: rig.project(mano.forward_joints(model, p)))(params) + normal(frames, 2, 21, 2, s=6.0)  # inside and outside 4 px
+    weight = jnp.asarray(rng.uniform(0.0, 1.0, size=(frames, 2, 21))).at[0, 1].set(0.0)  # frame 0 monocular
+    data = O.FrameData(uv, weight, anchor, jnp.asarray([1.0, 0.3, 1.0]), anchor / jnp.linalg.norm(anchor, axis=-1, keepdims=True))
+    track = O.Track(normal(frames, 16, 3, s=0.5), anchor + normal(frames, 3, s=0.01), jnp.full(frames, 60.0), normal(frames, 3),
+                    normal(frames, 3), anchor + normal(frames, 3, s=0.1), anchor, jnp.ones(frames), jnp.asarray([1.0, 0.0, 1.0]))  # fmt: skip
+    problem = O.Problem(model, rig, PosePrior.from_model(model), MotionPrior(), O.FitWeights(), normal(10, s=0.3), jnp.asarray(30.0))
+
+    @jax.jit
+    def both(round):
+        def one(y1, d1, t1):
+            a = (problem, d1, t1, round)
+            flat, unravel = ravel_pytree(y1)
+            f = lambda x: jnp.concatenate([r.reshape(-1) for r in O.frame_residuals(unravel(x), a)])  # noqa: E731
+            return solve.gauss_newton(f(flat), jax.jacfwd(f)(flat)), O.frame_normal_equations(y1, a)
+
+        return jax.vmap(one)(y, data, track)
+
+    for free, stiff, motion_ in ((1.0, 1.0, 0.0), (0.0, 25.0, 0.0), (0.0, 1.0, 1.0)):
+        (g, H), (g_fast, H_fast) = both(O.Round.make(free, stiff, motion_, jnp.float64))
+        np.testing.assert_allclose(g_fast, g, rtol=1e-9, atol=1e-9 * float(jnp.abs(g).max()))
+        np.testing.assert_allclose(H_fast, H, rtol=1e-9, atol=1e-9 * float(jnp.abs(H).max()))
+
+
 def test_priors_are_residual_callables():
     model = mano.load_builtin("right")
     prior = PosePrior.from_model(model)
     assert float(jnp.sum(prior(model.hands_mean.reshape(15, 3)) ** 2)) < 1e-6
     bent_back = jnp.zeros((15, 3)).at[1].set(jnp.asarray([0.0, 0.0, -1.5]))  # index PIP hyper-extended
     assert float(jnp.sum(prior(bent_back)[45:] ** 2)) > 1.0
+    # its normal equations in closed form, with hinges active and not
+    pose = bent_back + 0.3 * jnp.asarray(np.random.default_rng(2).normal(size=(15, 3)), jnp.float32)
+    J = jax.jacfwd(prior)(pose).reshape(90, 45)
+    g, H = prior.normal_equations(pose)
+    np.testing.assert_allclose(g, J.T @ prior(pose), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(H, J.T @ J, rtol=1e-4, atol=1e-3)
     smooth = MotionPrior()
     line = jnp.linspace(0.0, 1.0, 16)[:, None] * jnp.ones((1, 4))
     assert float(jnp.abs(smooth(line)).max()) < 1e-6
