@@ -1,7 +1,7 @@
 """The teacher: compilation and cache reuse, accuracy and speed across rigs, and its solvers
 side by side, with the public `fitting` API only.
 
-    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|all] [--quick]
+    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|step|all] [--quick]
 
 1. Compile / cache (issue 11, point 6). Each measurement runs in a fresh process
    (`--child`) given a fresh temporary directory through `esther_jax.enable_compilation_cache`:
@@ -27,6 +27,11 @@ side by side, with the public `fitting` API only.
    in-memory caches cleared before each: first call (compilation) and the backend
    compilation of the solver's program within it, time per hand after compilation,
    P-MPJPE and wrist error. A solver that fails is reported, not fatal.
+4. One solver step (`--section step`): for one hand's frames of an esther clip, the
+   residuals, the normal equations formed from forward-mode autodiff of all residuals and
+   as the solver assembles them from the objective's structure
+   (`objectives.frame_normal_equations`), its closed-form reprojection part, and the
+   Cholesky solve, each timed alone; the two normal equations' agreement.
 
 `--quick` is a smoke run (1 clip of 32 frames; section 1 only when asked for by
 `--section compile`, then on 32-frame clips); the targets are for the full settings.
@@ -51,6 +56,8 @@ import esther_jax  # noqa: E402
 import fitting  # noqa: E402
 from esther_jax import cameras, mano, metrics  # noqa: E402
 from esther_jax.data import detector, motion, synth  # noqa: E402
+from fitting import objectives, solve  # noqa: E402
+from jax.flatten_util import ravel_pytree  # noqa: E402
 
 _T_IMPORTED = time.perf_counter()
 
@@ -339,6 +346,57 @@ def solvers_section(clips: int, frames: int, solvers: tuple[str, ...] = fitting.
           "   solver compile: of the `solve_round` programs; per hand and hand-frames/s: the later calls)")
 
 
+# ----------------------------------------------------------------------------- step
+
+
+def _per_frame_ms(fn, *args, repeats: int = 20) -> float:
+    fn = jax.jit(fn)
+    jax.block_until_ready(fn(*args))
+    start = time.perf_counter()
+    for _ in range(repeats):
+        jax.block_until_ready(fn(*args))
+    return (time.perf_counter() - start) / repeats * 1000.0
+
+
+def step_section(frames: int):
+    """One Levenberg-Marquardt step's pieces for one hand's frames, side by side."""
+    print(f"\n== 4. one solver step for {frames} frames (esther rig, right hand, shape-lock round, float32) ==")
+    clip = synth.make_clip(1000, 0, synth.SynthConfig(num_frames=frames, rig="esther", motion_config=MOTION))
+    model, kp, gt, rig = mano.load_builtin("right"), clip.keypoints["right"], clip.gt["right"], clip.rig
+    f32 = jnp.float32
+    fused = fitting.fuse(*(jnp.asarray(kp[k], f32) for k in ("uv", "conf", "box", "box_score")))
+    evidence = fitting.prefilter(rig, fused, fitting.template_bones(model))
+    problem = fitting.Problem(model, rig, fitting.PosePrior.from_model(model), fitting.MotionPrior(), fitting.FitWeights(), jnp.zeros(10, f32), jnp.asarray(30.0, f32))
+    data = fitting.frame_data(evidence, jax.jit(fitting.initialise)(model, rig, evidence, problem.betas), problem)
+    noise = lambda x, s: jnp.asarray(x, f32) + s * jax.random.normal(jax.random.key(0), np.shape(x), f32)  # noqa: E731
+    y = objectives.FrameUnknowns(noise(gt["global_orient"], 0.1), noise(gt["hand_pose"], 0.1), noise(100.0 * (gt["transl"] - data.anchor), 0.5), jnp.zeros((frames, 10), f32))
+    track, round = objectives.Track.none(frames, f32), objectives.Round.make(1.0, 1.0, 0.0, f32)
+    per_frame = lambda fn: jax.vmap(lambda y1, d1, t1: fn(y1, (problem, d1, t1, round)))  # noqa: E731
+
+    def autodiff(y1, args):
+        flat, unravel = ravel_pytree(y1)
+        f = lambda x: jnp.concatenate([r.reshape(-1) for r in objectives.frame_residuals(unravel(x), args)])  # noqa: E731
+        return solve.gauss_newton(f(flat), jax.jacfwd(f)(flat))
+
+    def cholesky(g, H):
+        A = H + 1e-3 * jnp.eye(H.shape[-1], dtype=H.dtype)
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), g)
+
+    g, H = jax.jit(per_frame(objectives.frame_normal_equations))(y, data, track)
+    g_ad, H_ad = jax.jit(per_frame(autodiff))(y, data, track)
+    rows = [
+        ("residuals (243 per frame)", _per_frame_ms(per_frame(objectives.frame_residuals), y, data, track)),
+        ("normal equations, autodiff (J^T J of the 243 x 61 Jacobian)", _per_frame_ms(per_frame(autodiff), y, data, track)),
+        ("normal equations from the objective's structure", _per_frame_ms(per_frame(objectives.frame_normal_equations), y, data, track)),
+        ("  of which the reprojection's closed form (r, J)", _per_frame_ms(per_frame(objectives.reprojection_with_jacobian), y, data, track)),
+        ("Cholesky solve of the 61 x 61 systems", _per_frame_ms(jax.vmap(cholesky), g, H)),
+    ]
+    for what, ms in rows:
+        print(f"  {what:<62}{ms:8.2f} ms")
+    print(f"  structured / autodiff: {rows[2][1] / rows[1][1]:.2f}x the time; the two agree to "
+          f"{float(jnp.max(jnp.abs(H - H_ad)) / jnp.max(jnp.abs(H_ad))):.1e} (J^T J, relative to its largest entry)")
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -346,7 +404,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clips", type=int, default=4)
     parser.add_argument("--frames", type=int, default=64)
-    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "all"), default="all")
+    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "step", "all"), default="all")
     parser.add_argument("--solvers", nargs="+", choices=fitting.SOLVERS, default=fitting.SOLVERS, help="section 3's solvers")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 clip of 32 frames, section 1 only when asked for")
     parser.add_argument("--child", choices=("cold", "warm"), help=argparse.SUPPRESS)
@@ -366,6 +424,8 @@ def main():
         sweep_section(args.clips, args.frames)
     if args.section in ("solvers", "all"):
         solvers_section(args.clips, args.frames, tuple(args.solvers))
+    if args.section in ("step", "all"):
+        step_section(args.frames)
     if TARGETS:
         print("\nsummary:")
         for what, text, _ in TARGETS:
