@@ -366,10 +366,12 @@ def step_section(frames: int):
     f32 = jnp.float32
     fused = fitting.fuse(*(jnp.asarray(kp[k], f32) for k in ("uv", "conf", "box", "box_score")))
     evidence = fitting.prefilter(rig, fused, fitting.template_bones(model))
-    problem = fitting.Problem(model, rig, fitting.PosePrior.from_model(model), fitting.MotionPrior(), fitting.FitWeights(), jnp.zeros(10, f32), jnp.asarray(30.0, f32))
+    prior = fitting.PosePrior.from_model(model)
+    problem = fitting.Problem(model, rig, prior, fitting.MotionPrior(), fitting.FitWeights(), jnp.zeros(10, f32), jnp.asarray(30.0, f32))
     data = fitting.frame_data(evidence, jax.jit(fitting.initialise)(model, rig, evidence, problem.betas), problem)
     noise = lambda x, s: jnp.asarray(x, f32) + s * jax.random.normal(jax.random.key(0), np.shape(x), f32)  # noqa: E731
-    y = objectives.FrameUnknowns(noise(gt["global_orient"], 0.1), noise(gt["hand_pose"], 0.1), noise(100.0 * (gt["transl"] - data.anchor), 0.5), jnp.zeros((frames, 10), f32))
+    offset_cm = 100.0 * (gt["transl"] - data.anchor)
+    y = objectives.FrameUnknowns(noise(gt["global_orient"], 0.1), noise(gt["hand_pose"], 0.1), noise(offset_cm, 0.5), jnp.zeros((frames, 10), f32))
     track, round = objectives.Track.none(frames, f32), objectives.Round.make(1.0, 1.0, 0.0, f32)
     per_frame = lambda fn: jax.vmap(lambda y1, d1, t1: fn(y1, (problem, d1, t1, round)))  # noqa: E731
 
