@@ -33,12 +33,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from esther_jax import mano
 from esther_jax.cameras import StereoRig, apply_transform
 from esther_jax.mano import KEYPOINT_PARENTS, PALM_KEYPOINTS
-from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, matrix_to_axis_angle, skew
+from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle, skew
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
@@ -198,8 +198,10 @@ the 24 cube orientations)."""
 PNP_STEPS = 12
 PNP_SCREEN_STEPS = 6
 PNP_FINISHED_STARTS = 3
+PNP_DISTINCT_RAD = 0.35
 """The search runs every start `PNP_SCREEN_STEPS` steps and finishes the
-`PNP_FINISHED_STARTS` lowest-cost ones (`PNP_STEPS` in all)."""
+`PNP_FINISHED_STARTS` lowest-cost ones of distinct orientations (at least
+`PNP_DISTINCT_RAD` apart; `PNP_STEPS` steps in all)."""
 PNP_HUBER_RAD = 0.01
 """Huber threshold of the palm pose's angular residuals (about 2.5 px at Aria's 241 px
 focal length, 6 px at 623 px): an outlying keypoint bends the pose little."""
@@ -277,6 +279,22 @@ def palm_normal_equations(y: PalmUnknowns, args) -> tuple[Float[Array, "6"], Flo
     return gauss_newton(*palm_residuals_and_jacobian(y, args))
 
 
+def _distinct_cheapest(R: Float[Array, "n 3 3"], cost: Float[Array, "n"], k: int) -> Int[Array, "k"]:
+    """The k cheapest orientations that differ pairwise by more than
+    `PNP_DISTINCT_RAD` (many starts fall into the same basin: keeping copies of one pose
+    would crowd out the other basins); the cheapest remaining where fewer are distinct."""
+    picked, remaining = [], cost
+    for _ in range(k):
+        i = jnp.argmin(remaining)
+        picked.append(i)
+        near = geodesic_angle(R, jnp.broadcast_to(R[i], R.shape)) < PNP_DISTINCT_RAD
+        remaining = jnp.where(near, jnp.inf, remaining).at[i].set(jnp.inf)
+        # when every start left is near a kept one, fall back to the cheapest not yet kept
+        taken = jnp.zeros(cost.shape, bool).at[jnp.stack(picked)].set(True)
+        remaining = jnp.where(jnp.all(jnp.isinf(remaining)), jnp.where(taken, jnp.inf, cost), remaining)
+    return jnp.stack(picked)
+
+
 def palm_pose(
     rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"], rest: Float[Array, "21 3"],
     start_rotation: Float[Array, "3 3"], start_wrist: Float[Array, "3"], has_start: Bool[Array, ""],
@@ -327,7 +345,7 @@ def palm_pose(
         # screen every start with a few steps, then finish the most promising ones
         R, t, cost = jax.vmap(functools.partial(solve_from, steps=PNP_SCREEN_STEPS))(R_starts, t_starts)
         cost = jnp.where(jnp.arange(cost.shape[0]) == 0, jnp.where(has_start, cost, jnp.inf), cost)
-        _, keep = jax.lax.top_k(-cost, PNP_FINISHED_STARTS)
+        keep = _distinct_cheapest(R, cost, PNP_FINISHED_STARTS)
         R_starts, t_starts = R[keep], t[keep]
     R, t, cost = jax.vmap(functools.partial(solve_from, steps=PNP_STEPS - (PNP_SCREEN_STEPS if search else 0)))(R_starts, t_starts)
     best = jnp.argmin(cost)

@@ -16,8 +16,10 @@ is available offline, so these are our documented stand-ins:
   wrist position, whose per-frame stereo depth noise (z^2/(f b) per pixel of
   disparity) is the main source of jitter.
 
-Interface: a pose prior is `prior(hand_pose (15, 3)) -> residuals (n,)`; a motion prior
-is `prior(trajectory (window, features)) -> residuals (n,)`.
+Interface: a pose prior is `prior(hand_pose (15, 3)) -> residuals (n,)` with
+`prior.normal_equations(hand_pose) -> (J^T r (45,), J^T J (45, 45))` in the pose
+(the teacher's solver adds those; a learned prior can form them from `jax.jacfwd`); a
+motion prior is `prior(trajectory (window, features)) -> residuals (n,)`.
 """
 
 import equinox as eqx

@@ -5,13 +5,17 @@ converged and how many steps it took, and one failing frame never aborts the bat
 (optimistix: `throw=False`). The solvers (`SOLVERS`, `LabelConfig.solver`):
 
 - `"lm"` (default): Levenberg-Marquardt with a fixed number of steps, written here in
-  a dozen lines: forward-mode Jacobian (`jax.jacfwd`, ~58 unknowns), Marquardt's
-  diagonal damping, Cholesky normal equations, accept / reject by the cost. Its
+  a dozen lines: the normal equations from the objective itself where it provides them
+  (`objectives.frame_normal_equations`: about 5x cheaper than forming them from the
+  forward-mode Jacobian of all residuals, `benchmarks/teacher.py --section step`), else
+  from `jax.jacfwd`; Marquardt's diagonal damping, a Cholesky solve, accept / reject by
+  the cost. Its
   program is one loop, about half the size of optimistix's general machinery, so it
   compiles 2-3x faster at the same accuracy (benchmarks/teacher.py measures all four),
   and its step count may be traced: one compiled program serves every stage.
 - `"dogleg"`: optimistix's dogleg trust-region Gauss-Newton (Cholesky normal equations).
 - `"optx-lm"`: optimistix's Levenberg-Marquardt.
+The optimistix solvers linearise the residuals themselves (forward-mode autodiff).
 
 jaxopt's Levenberg-Marquardt was measured beside these (benchmarks/teacher.py, esther
 rig, one 32-frame clip, a loaded machine): first call 59 s against 15 s for "lm", 39
