@@ -33,12 +33,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float
 
 from esther_jax import mano
 from esther_jax.cameras import StereoRig, apply_transform
 from esther_jax.mano import KEYPOINT_PARENTS, PALM_KEYPOINTS
-from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle, skew
+from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, matrix_to_axis_angle, skew
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
@@ -196,12 +196,6 @@ PNP_START_DEPTHS_M = (0.45,)
 """Distances along the palm's mean ray at which the palm pose search starts (with each of
 the 24 cube orientations)."""
 PNP_STEPS = 12
-PNP_SCREEN_STEPS = 6
-PNP_FINISHED_STARTS = 3
-PNP_DISTINCT_RAD = 0.35
-"""The search runs every start `PNP_SCREEN_STEPS` steps and finishes the
-`PNP_FINISHED_STARTS` lowest-cost ones of distinct orientations (at least
-`PNP_DISTINCT_RAD` apart; `PNP_STEPS` steps in all)."""
 PNP_HUBER_RAD = 0.01
 """Huber threshold of the palm pose's angular residuals (about 2.5 px at Aria's 241 px
 focal length, 6 px at 623 px): an outlying keypoint bends the pose little."""
@@ -279,22 +273,6 @@ def palm_normal_equations(y: PalmUnknowns, args) -> tuple[Float[Array, "6"], Flo
     return gauss_newton(*palm_residuals_and_jacobian(y, args))
 
 
-def _distinct_cheapest(R: Float[Array, "n 3 3"], cost: Float[Array, "n"], k: int) -> Int[Array, "k"]:
-    """The k cheapest orientations that differ pairwise by more than
-    `PNP_DISTINCT_RAD` (many starts fall into the same basin: keeping copies of one pose
-    would crowd out the other basins); the cheapest remaining where fewer are distinct."""
-    picked, remaining = [], cost
-    for _ in range(k):
-        i = jnp.argmin(remaining)
-        picked.append(i)
-        near = geodesic_angle(R, jnp.broadcast_to(R[i], R.shape)) < PNP_DISTINCT_RAD
-        remaining = jnp.where(near, jnp.inf, remaining).at[i].set(jnp.inf)
-        # when every start left is near a kept one, fall back to the cheapest not yet kept
-        taken = jnp.zeros(cost.shape, bool).at[jnp.stack(picked)].set(True)
-        remaining = jnp.where(jnp.all(jnp.isinf(remaining)), jnp.where(taken, jnp.inf, cost), remaining)
-    return jnp.stack(picked)
-
-
 def palm_pose(
     rig: StereoRig, uv: Float[Array, "2 21 2"], weight: Float[Array, "2 21"], rest: Float[Array, "21 3"],
     start_rotation: Float[Array, "3 3"], start_wrist: Float[Array, "3"], has_start: Bool[Array, ""],
@@ -310,12 +288,13 @@ def palm_pose(
     objective (Huber on the angle between observed and posed rays, confidence-weighted)
     is solved by Levenberg-Marquardt from 24 cube orientations placed on the palm's mean
     ray (at each of `PNP_START_DEPTHS_M`), plus the given start (the triangulated palm's
-    Kabsch fit) where `has_start`. Every start is screened with `PNP_SCREEN_STEPS` steps
-    and the `PNP_FINISHED_STARTS` cheapest are finished (on the benchmark's rigs the same
-    labels as finishing all of them, at about half the work); the lowest cost wins,
-    which resolves the two mirror-image poses a nearly planar palm admits (the thumb CMC
-    sits off the palm plane). With `search=False` only the given start is refined (a
-    pose already found, e.g. with another shape).
+    Kabsch fit) where `has_start`; the lowest cost wins, which resolves the two
+    mirror-image poses a nearly planar palm admits (the thumb CMC sits off the palm
+    plane). Every start is solved to the end: screening them after a few steps and
+    finishing only the cheapest (even of distinct orientations) saved a tenth of the
+    teacher's time but changed the labels of clips with one view blanked for a while.
+    With `search=False` only the given start is refined (a pose already found, e.g.
+    with another shape).
     """
     rays, w = _palm_rays(rig, uv, weight)
     P = rest[np.asarray(PALM_KEYPOINTS)] - rest[0][None]
@@ -334,20 +313,16 @@ def palm_pose(
         R_starts = jnp.concatenate([R_starts, jnp.tile(cube, (len(PNP_START_DEPTHS_M), 1, 1))])
         t_starts = jnp.concatenate([t_starts, t_cube.reshape(-1, 3)])
 
-    def solve_from(R0, t0, steps):
+    def solve_from(R0, t0):
         y0 = PalmUnknowns(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
-        y, _, _ = levenberg_marquardt(palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=steps, normal_equations=palm_normal_equations)
+        y, _, _ = levenberg_marquardt(palm_residuals, y0, (rig, rays, w, P, R0, t0), steps=PNP_STEPS, normal_equations=palm_normal_equations)
         (res,) = palm_residuals(y, (rig, rays, w, P, R0, t0))
-        cost = jnp.sum(res * res)
-        return *y.pose(R0, t0), jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+        return *y.pose(R0, t0), jnp.sum(res * res)
 
+    R, t, cost = jax.vmap(solve_from)(R_starts, t_starts)
     if search:
-        # screen every start with a few steps, then finish the most promising ones
-        R, t, cost = jax.vmap(functools.partial(solve_from, steps=PNP_SCREEN_STEPS))(R_starts, t_starts)
         cost = jnp.where(jnp.arange(cost.shape[0]) == 0, jnp.where(has_start, cost, jnp.inf), cost)
-        keep = _distinct_cheapest(R, cost, PNP_FINISHED_STARTS)
-        R_starts, t_starts = R[keep], t[keep]
-    R, t, cost = jax.vmap(functools.partial(solve_from, steps=PNP_STEPS - (PNP_SCREEN_STEPS if search else 0)))(R_starts, t_starts)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     best = jnp.argmin(cost)
     total_w = jnp.maximum(jnp.sum(w), 1e-9)
     rms = jnp.sqrt(jnp.minimum(cost[best], 1e6) / total_w)
