@@ -19,6 +19,11 @@ switches that tell the stages apart):
 A monocular frame has reprojection terms in one view and no wrist anchor (it was not
 triangulated): its depth comes from the locked hand size, the priors and, in the motion
 refit, from its neighbours.
+
+The solver does not differentiate `frame_residuals` as a whole: `frame_normal_equations`
+gives it J^T r and J^T J from the terms' structure (the reprojection's Jacobian in closed
+form, the pose prior's in its own unknowns, the per-unknown priors as diagonals), equal
+to those of the full Jacobian at a fifth of the cost.
 """
 
 import math
