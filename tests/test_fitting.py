@@ -111,7 +111,8 @@ def test_palm_jacobian_in_closed_form_equals_autodiff():
 def test_normal_equations_from_the_objectives_structure_equal_the_full_jacobians(x64):
     """`frame_normal_equations` (closed-form reprojection and pose-prior Jacobians,
     diagonal terms) equals J^T r, J^T J of forward-mode autodiff through all of
-    `frame_residuals`, in every kind of round, on a fisheye rig with divergent views."""
+    `frame_residuals`, in every kind of round (the projection's Jacobian is generic forward
+    mode, so one camera model suffices)."""
     from fitting import objectives as O, solve
 
     rig = cameras.rig_preset("esther")
