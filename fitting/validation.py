@@ -477,7 +477,8 @@ def label_quality_table(result: dict, group: str = "all") -> str:
         cells = ["n/a"] * 3 if row is None else [f"{row[s]:.3g}" for s in ("median", "mean", "p90")]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     if group != "stereo" and result["label_quality"]["monocular"]["passing"]:
-        note = "Monocular hand-frames: depth per pixel of the hand's image extent, z^2/(fL) with L the hand's length, in place of the disparity's z^2/(fb) (`fitting.quality`)."
+        note = ("Monocular hand-frames: depth per pixel of the hand's image extent, z^2/(fL) with L the hand's length, "
+                "in place of the disparity's z^2/(fb) (`fitting.quality`).")
         lines += ["", note]
     return "\n".join(lines) + "\n"
 
