@@ -250,12 +250,13 @@ def frame_normal_equations(y: FrameUnknowns, args: tuple[Problem, FrameData, Tra
     problem = args[0]
     g, H = gauss_newton(*reprojection_with_jacobian(y, args))
     # the depth anchor and speed limits, in the wrist's orientation and position only
+    def coupled(orient, transl_cm):
+        r = jnp.concatenate([t.reshape(-1) for t in coupled_terms(FrameUnknowns(orient, y.hand_pose, transl_cm, y.betas), args)])
+        return r, r  # jacfwd's auxiliary output: the residuals themselves
+
+    (J_orient, J_transl), r = jax.jacfwd(coupled, argnums=(0, 1), has_aux=True)(y.global_orient, y.transl_cm)
+    g_wrist, H_wrist = gauss_newton(r, jnp.concatenate([J_orient, J_transl], axis=1))
     wrist = np.r_[FLAT_ORIENT, FLAT_TRANSL]
-    flat, unravel = ravel_pytree(y)
-    both = lambda r: (r, r)  # noqa: E731 - jacfwd's auxiliary output: the residuals themselves
-    coupled = lambda x: both(jnp.concatenate([r.reshape(-1) for r in coupled_terms(unravel(flat.at[wrist].set(x)), args)]))  # noqa: E731
-    J, r = jax.jacfwd(coupled, has_aux=True)(flat[wrist])
-    g_wrist, H_wrist = gauss_newton(r, J)
     g, H = g.at[wrist].add(g_wrist), H.at[np.ix_(wrist, wrist)].add(H_wrist)
     # the pose prior, in the 45 pose unknowns
     g_pose, H_pose = problem.pose_prior.normal_equations(y.hand_pose)

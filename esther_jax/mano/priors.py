@@ -47,13 +47,12 @@ class PosePrior(eqx.Module):
         PCA part's Jacobian is the whitening; a hinge's is +-limit_weight times its joint's
         anatomical axis where the limit is exceeded, 0 inside, so its share is block
         diagonal (one 3x3 block per joint)."""
-        centred = hand_pose.reshape(45) - self.mean
-        z = self.whitening @ centred
+        r = self(hand_pose)
+        z, hinges = r[:45], r[45:].reshape(15, 3)
         angles = hand_pose_to_anatomical(hand_pose, self.frames)
         above, below = angles > self.upper, angles < self.lower
-        excess = jnp.where(above, angles - self.upper, 0.0) + jnp.where(below, self.lower - angles, 0.0)
         slope = self.limit_weight * (above.astype(angles.dtype) - below.astype(angles.dtype))  # d residual / d angle
-        g_limits = jnp.einsum("jai,ji->ja", self.frames, slope * self.limit_weight * excess)
+        g_limits = jnp.einsum("jai,ji->ja", self.frames, slope * hinges)
         blocks = jnp.einsum("jai,jbi->jab", self.frames * slope[:, None, :], self.frames * slope[:, None, :])
         H_limits = jnp.einsum("jk,jab->jakb", jnp.eye(15, dtype=blocks.dtype), blocks).reshape(45, 45)
         return self.whitening.T @ z + g_limits.reshape(45), self.whitening.T @ self.whitening + H_limits
