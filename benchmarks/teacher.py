@@ -7,8 +7,10 @@ side by side, with the public `fitting` API only.
    (`--child`) given a fresh temporary directory through `esther_jax.enable_compilation_cache`:
    (a) cold: time to the first label of a 64-frame clip on `esther` (pinhole) and on
        `hot3d_quest3` (fisheye). Targets: pinhole <= 20 s, fisheye <= 40 s.
-   (b) a second process on the same rig with the now-warm cache: time to the first label.
-       Target: <= 5 s (compilation cache hit).
+   (b) a second process on the same rig with the now-warm cache: time to the first label
+       (the teacher's programs loaded from `programs/`, not traced; their executables from
+       the XLA cache, not compiled), and whether its labels are bit-identical to the cold
+       process's. Target: <= 5 s.
    (c) in that warm process, a clip on a third rig of the same camera model but another
        calibration (pinhole: the esther pair with fx 700 px, cx 950 px and a 5 cm longer
        baseline; fisheye: `hot3d_aria` after `hot3d_quest3`): the backend compilations it
@@ -42,6 +44,7 @@ import time
 _T_IMPORT = time.perf_counter()
 
 import argparse  # noqa: E402
+import hashlib  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import subprocess  # noqa: E402
@@ -54,7 +57,7 @@ import numpy as np  # noqa: E402
 
 import esther_jax  # noqa: E402
 import fitting  # noqa: E402
-from esther_jax import cameras, mano, metrics  # noqa: E402
+from esther_jax import cameras, compilation, mano, metrics  # noqa: E402
 from esther_jax.data import detector, motion, synth  # noqa: E402
 from fitting import objectives, solve  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
@@ -171,9 +174,10 @@ def child(mode: str, rig_name: str, cache: str, frames: int) -> dict:
     out["synthesis_s"] = time.perf_counter() - t0
     mark = log.mark()
     t0 = time.perf_counter()
-    fitting.label_hand(model, cameras.rig_preset(rig_name), keypoints, fps)
+    labels, _ = fitting.label_hand(model, cameras.rig_preset(rig_name), keypoints, fps)
     out["first_label_s"] = time.perf_counter() - t0
     out["first_label"] = log.summary(mark)
+    out["labels_sha256"] = labels_digest(labels)
     if mode == "warm":
         rig = THIRD_RIG[rig_name][0]()
         side, keypoints, fps = hand_on(rig, 11, 1, frames)
@@ -184,6 +188,14 @@ def child(mode: str, rig_name: str, cache: str, frames: int) -> dict:
         out["third_label_s"] = time.perf_counter() - t0
         out["third_rig"] = log.summary(mark)
     return out
+
+
+def labels_digest(labels: dict) -> str:
+    """A digest of a clip's labels, to tell whether two processes computed the same bits."""
+    h = hashlib.sha256()
+    for key in sorted(labels):
+        h.update(key.encode() + np.ascontiguousarray(labels[key]).tobytes())
+    return h.hexdigest()
 
 
 def run_child(mode: str, rig: str, cache: str, frames: int, timeout: float = 1200.0) -> dict:
@@ -225,13 +237,17 @@ def compile_section(frames: int):
             print(f"  (a) cold:  first label {target(f'cold compilation, {kind}', cold['first_label_s'], COLD_TARGET_S[kind], ' s')}")
             print(f"        {_compiles(cold['first_label'])}; imports {cold['imports_s']:.1f} s, synthesis {cold['synthesis_s']:.1f} s, process {cold['process_s']:.1f} s")
             entries = sum(len(files) for _, _, files in os.walk(cache))
+            stored = len(os.listdir(os.path.join(cache, compilation.PROGRAMS)))
             warm = run_child("warm", rig, cache, frames)
             if "error" in warm:
                 print(f"  warm process failed: {warm['error']}")
                 TARGETS.append((f"warm cache, {kind}", "failed", False))
                 continue
             print(f"  (b) warm:  first label {target(f'warm cache, {kind}', warm['first_label_s'], WARM_TARGET_S, ' s')}")
-            print(f"        {_compiles(warm['first_label'])} ({entries} files in the cache); imports {warm['imports_s']:.1f} s, process {warm['process_s']:.1f} s")
+            print(f"        {_compiles(warm['first_label'])} ({entries} files in the cache, {stored} of them traced programs); "
+                  f"imports {warm['imports_s']:.1f} s, process {warm['process_s']:.1f} s")
+            same = warm["labels_sha256"] == cold["labels_sha256"]
+            print(f"        labels {'bit-identical to' if same else 'DIFFERENT from'} the cold process's")
             third_s = warm["third_rig"]
             met = target(f"third rig, {kind}: solver compilations", third_s["solver_compiled"], 0, "", fmt="d")
             print(f"  (c) third rig, same process: labelled in {warm['third_label_s']:.2f} s; solver compilations {met}")

@@ -1,38 +1,203 @@
-"""The persistent XLA compilation cache: compile the teacher's solvers (and the
-network's steps) once per machine, not once per process.
+"""Compile once per machine, not once per process: the persistent XLA compilation cache,
+and the traced programs of `persistent_jit` functions stored beside it.
 
     import esther_jax
     esther_jax.enable_compilation_cache()   # notebooks, scripts; the `esther` CLI calls it
 
 Programs are stored under `$ESTHER_JAX_CACHE` (default `~/.cache/esther_jax/xla`) and
-reused by every later process with the same program, jax version and backend. JAX never
-stores a program that contains a host callback (`jax.pure_callback`, `eqx.error_if`,
-`jax.debug.print`): the library's compiled hot paths contain none, and validate their
-inputs at the edge instead.
+reused by every later process with the same program, jax version and backend. The XLA
+cache saves only the compilation: a new process still traces every function and lowers it
+to StableHLO before it can look a program up, which for the teacher's solvers took longer
+than loading them (about 11 s against 2 s on a 2-core machine). Functions decorated with
+`persistent_jit` (the teacher's programs) therefore also store their lowered program
+(`jax.export`, in `programs/`), keyed by this library's source, the versions of the
+libraries it traces through, the backend, the arguments' structure, shapes and dtypes and
+the static arguments; a later process deserialises it and goes straight to the XLA cache.
+
+JAX never stores a program that contains a host callback (`jax.pure_callback`,
+`eqx.error_if`, `jax.debug.print`), and `jax.export` cannot serialise one: the library's
+compiled hot paths contain none, and validate their inputs at the edge instead.
 """
 
+import functools
+import hashlib
+import importlib.metadata
+import inspect
+import io
 import os
 import pathlib
+import pickle
+import warnings
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
 
 DEFAULT_DIR = pathlib.Path("~/.cache/esther_jax/xla")
+PROGRAMS = "programs"
+_MAGIC = b"esther-jax program 1\n"
+_store: list[pathlib.Path] = []  # the folder of stored programs once enabled (one entry)
+_digest: list[str] = []  # this library's source digest, computed once per process
 
 
 def enable_compilation_cache(directory: str | os.PathLike | None = None, *, min_compile_time_s: float = 0.0) -> pathlib.Path:
     """Store compiled programs that took longer than `min_compile_time_s` to compile in
-    `directory` (default `$ESTHER_JAX_CACHE` or `~/.cache/esther_jax/xla`) and load them
-    from there in later processes. Returns the directory; safe to call more than once.
+    `directory` (default `$ESTHER_JAX_CACHE` or `~/.cache/esther_jax/xla`), and the traced
+    programs of `persistent_jit` functions in its `programs/` folder; load both from there
+    in later processes. Returns the directory; safe to call more than once.
 
     The default stores every program, however small: besides its few large solvers the
     teacher runs about thirty small programs (tens of milliseconds each), and a warm
-    process loads them faster than it compiles them (first label of a 64-frame clip,
-    `benchmarks/teacher.py --section compile`: 5.2 -> 4.3 s on the pinhole rig, 6.7 -> 5.7 s
-    on the fisheye rig, against a 0.5 s threshold). The price is more, smaller files in
+    process loads them faster than it compiles them. The price is more, smaller files in
     the cache (a few hundred per rig and process)."""
-    import jax
-
     path = pathlib.Path(directory or os.environ.get("ESTHER_JAX_CACHE") or DEFAULT_DIR).expanduser()
-    path.mkdir(parents=True, exist_ok=True)
+    (path / PROGRAMS).mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _store[:] = [path / PROGRAMS]
     return path
+
+
+def persistent_jit(fun: Callable | None = None, *, static_argnames: tuple[str, ...] = ()) -> Callable:
+    """`jax.jit`, whose lowered program is also stored once `enable_compilation_cache` has
+    been called (before that it is exactly `jax.jit(fun, static_argnames=...)`).
+
+    With the store enabled, each new combination of the arguments' pytree structure, their
+    shapes and dtypes and the static arguments' values is traced and exported once per
+    machine (`jax.export`), compiled ahead of time (through the XLA cache) and kept in
+    memory for the process; a later process loads the program instead of tracing it.
+    Differences from `jax.jit` there: arguments are taken at their dtypes as strongly
+    typed arrays (a Python float is a float32 or float64 array, as `jnp.asarray` makes it),
+    they must live on the default device, and `fun` must contain no host callback (a
+    function that cannot be exported runs through `jax.jit`, with a warning naming it)."""
+    if fun is None:
+        return functools.partial(persistent_jit, static_argnames=static_argnames)
+    jitted = jax.jit(fun, static_argnames=static_argnames)
+    signature = inspect.signature(fun)
+    name = f"{fun.__module__}.{fun.__qualname__}"
+    programs: dict = {}  # (treedef, static, avals) -> (compiled, output treedef)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        if not _store:
+            return jitted(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        static = tuple((k, bound.arguments[k]) for k in static_argnames)
+        leaves, treedef = jax.tree.flatten({k: v for k, v in bound.arguments.items() if k not in static_argnames})
+        leaves = [x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, jnp.result_type(x)) for x in leaves]
+        avals = tuple((x.shape, x.dtype) for x in leaves)
+        key = (treedef, static, avals)
+        if key not in programs:
+            programs[key] = _program(fun, signature, name, treedef, static, avals)
+        compiled, out_treedef = programs[key]
+        if compiled is None:  # not exportable: jax.jit's program, warned about once
+            return jitted(*args, **kwargs)
+        return jax.tree.unflatten(out_treedef, compiled(*leaves))
+
+    return call
+
+
+def _program(fun: Callable, signature: inspect.Signature, name: str, treedef, static: tuple, avals: tuple):
+    """The compiled program and output structure of `fun` at one signature: loaded from
+    the store, or traced, exported and stored."""
+    import jax.export
+
+    key = hashlib.sha256()
+    for part in (_source_digest(), jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision, name, str(treedef), repr(static), repr(avals)):
+        key.update(repr(part).encode() + b"\0")
+    path = _store[0] / f"{name}-{key.hexdigest()[:40]}.jaxexport"
+    shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals]
+    loaded = _load(path, packages=("esther_jax", "fitting", fun.__module__.split(".")[0]))
+    if loaded is not None:
+        exported, out_treedef = loaded
+    else:
+        structure = []
+
+        @functools.wraps(fun)
+        def flat(*leaves):
+            arguments = jax.tree.unflatten(treedef, leaves) | dict(static)
+            bound = inspect.BoundArguments(signature, {p: arguments[p] for p in signature.parameters})
+            leaves_out, out_treedef = jax.tree.flatten(fun(*bound.args, **bound.kwargs))
+            structure.append(out_treedef)
+            return leaves_out
+
+        try:
+            exported = jax.export.export(jax.jit(flat))(*shapes)
+        except Exception as err:
+            if not structure:  # the function's own error, raised while tracing it
+                raise
+            # traced, but not exportable: a host callback, a custom call without a stable serialisation
+            warnings.warn(f"{name} cannot be stored as a program ({str(err).splitlines()[0]}); it runs through jax.jit in every process", stacklevel=3)
+            return None, None
+        out_treedef = structure[0]
+        _save(path, exported, jax.tree.unflatten(out_treedef, list(range(out_treedef.num_leaves))))
+    run = functools.wraps(fun)(lambda *leaves: exported.call(*leaves))
+    return jax.jit(run).lower(*shapes).compile(), out_treedef
+
+
+def _save(path: pathlib.Path, exported, skeleton) -> None:
+    """One file: a header, the output structure (the output pytree with its leaves
+    numbered; plain pickle of this library's modules) and the serialised program."""
+    from .files import atomic_output
+
+    structure = pickle.dumps(skeleton, protocol=pickle.HIGHEST_PROTOCOL)
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(_MAGIC + len(structure).to_bytes(8, "little") + structure + bytes(exported.serialize()))
+
+
+def _load(path: pathlib.Path, packages: tuple[str, ...]):
+    """(exported, output treedef) from a stored program, or None when there is none or it
+    cannot be read (then it is traced again and the file replaced). The output structure
+    may name classes of `packages` only."""
+    import jax.export
+
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    try:
+        if not data.startswith(_MAGIC):
+            raise ValueError("not a stored program")
+        start = len(_MAGIC) + 8
+        end = start + int.from_bytes(data[len(_MAGIC):start], "little")
+        skeleton = _Unpickler(io.BytesIO(data[start:end]), packages).load()
+        return jax.export.deserialize(bytearray(data[end:])), jax.tree.structure(skeleton)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is traced again
+        warnings.warn(f"ignoring the unreadable stored program {path} ({type(err).__name__}: {err}); tracing it again", stacklevel=4)
+        return None
+
+
+class _Unpickler(pickle.Unpickler):
+    """Reads a stored output structure: classes of the given packages (this library's and
+    the decorated function's) and plain containers, never arbitrary callables."""
+
+    BUILTINS = frozenset({"tuple", "list", "dict", "set", "frozenset", "int", "float", "complex", "bool", "str", "bytes", "slice"})
+
+    def __init__(self, file, packages: tuple[str, ...]):
+        super().__init__(file)
+        self.packages = packages
+
+    def find_class(self, module, name):
+        if module.split(".")[0] in self.packages or (module == "builtins" and name in self.BUILTINS):
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"a stored program's output structure names {module}.{name}, which it may not")
+
+
+def _source_digest() -> str:
+    """What a stored program depends on besides its arguments: this library's source and
+    the versions of the libraries it traces through."""
+    if not _digest:
+        import esther_jax
+        import fitting
+
+        h = hashlib.sha256()
+        for package in (esther_jax, fitting):
+            root = pathlib.Path(package.__file__).parent
+            for path in sorted(root.rglob("*.py")):
+                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+        for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+            h.update(f"{dist}={importlib.metadata.version(dist)}\0".encode())
+        _digest.append(h.hexdigest())
+    return _digest[0]

@@ -10,12 +10,19 @@ import jax
 import pytest
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
-# Keep compiled solvers between runs (the teacher's take ~40 s to compile cold).
-jax.config.update("jax_compilation_cache_dir", os.environ.get("ESTHER_JAX_CACHE", os.path.expanduser("~/.cache/esther_jax/xla")))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 SHARED_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compilation_cache():
+    """Keep compiled solvers (and the teacher's traced programs) between runs, as the
+    `esther` CLI does: the teacher's take ~40 s to compile cold. (A fixture, so that the
+    library is imported after the run-time shape checks are installed.)"""
+    import esther_jax
+
+    esther_jax.enable_compilation_cache(min_compile_time_s=1.0)
 
 
 @pytest.fixture

@@ -1,0 +1,109 @@
+"""`persistent_jit`: a stored program computes what `jax.jit` computes, a later process
+(here: a second decorated copy, with an empty in-memory cache) loads it instead of tracing
+it, and the store's edge cases (unreadable file, unexportable function, store off) behave."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esther_jax import compilation
+from esther_jax.cameras import rig_preset
+from fitting.pipeline import traced_rig
+
+
+class Scaled(eqx.Module):
+    value: jax.Array
+    scale: jax.Array
+    label: str = eqx.field(static=True)
+
+
+def affine(rig, x, offset, *, power: int):
+    """A pytree in (a rig, a Module, a Python float), a Module and a tuple out."""
+    y = rig.project(x.value) ** power + offset
+    return Scaled(y, x.scale * 2.0, x.label + "!"), (jnp.sum(y), power)
+
+
+def traced(trace_log: list):
+    def fun(rig, x, offset, *, power: int):
+        trace_log.append(power)
+        return affine(rig, x, offset, power=power)
+
+    fun.__module__, fun.__qualname__ = __name__, "affine"  # the store's name, shared by every copy
+    return compilation.persistent_jit(fun, static_argnames=("power",))
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """A fresh, empty program store for one test (the session's store restored after)."""
+    monkeypatch.setattr(compilation, "_store", [tmp_path / compilation.PROGRAMS])
+    (tmp_path / compilation.PROGRAMS).mkdir()
+    return tmp_path / compilation.PROGRAMS
+
+
+def _inputs():
+    rig = traced_rig(rig_preset("esther"))
+    x = Scaled(jnp.asarray([[0.05, -0.02, 0.4], [0.0, 0.03, 0.5]], jnp.float32), jnp.asarray(1.5, jnp.float32), "hand")
+    return rig, x
+
+
+def test_a_stored_program_equals_jit_and_is_loaded_not_traced(store):
+    rig, x = _inputs()
+    expected = jax.jit(affine, static_argnames=("power",))(rig, x, 0.25, power=2)
+
+    log_first, log_second = [], []
+    first = traced(log_first)(rig, x, 0.25, power=2)
+    assert log_first == [2] and len(list(store.glob("*.jaxexport"))) == 1
+    second = traced(log_second)(rig, x, 0.25, power=2)  # an empty in-memory cache: from the file
+    assert log_second == []
+    for out in (first, second):
+        assert jax.tree.structure(out) == jax.tree.structure(expected) and out[0].label == "hand!" and out[1][1] == 2
+        for got, want in zip(jax.tree.leaves(out), jax.tree.leaves(expected)):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+    again = traced(log_second)
+    again(rig, x, 0.25, power=3)  # another static value: another program
+    again(rig, x, 0.25, power=3)  # the same one again: from memory
+    again(rig, x, jnp.asarray(0.75, jnp.float32), power=3)  # a strongly typed array for the Python float: the same program
+    assert log_second == [3] and len(list(store.glob("*.jaxexport"))) == 2
+    with pytest.raises(ValueError, match="label must be a string"):  # the function's own errors come through
+        compilation.persistent_jit(_bad)(x)
+
+
+def _bad(x):
+    raise ValueError("label must be a string")
+
+
+def test_an_unreadable_stored_program_is_traced_again(store):
+    rig, x = _inputs()
+    traced([])(rig, x, 0.25, power=2)
+    (path,) = store.glob("*.jaxexport")
+    path.write_bytes(path.read_bytes()[:100])  # truncated
+    log = []
+    with pytest.warns(UserWarning, match="unreadable stored program"):
+        out = traced(log)(rig, x, 0.25, power=2)
+    assert log == [2] and np.all(np.isfinite(np.asarray(out[0].value)))
+    log = []
+    traced(log)(rig, x, 0.25, power=2)  # the file was replaced by a readable one
+    assert log == []
+
+
+def test_a_function_with_a_host_callback_runs_through_jit(store):
+    def checked(x):
+        return eqx.error_if(x, x < 0, "negative") * 2.0
+
+    with pytest.warns(UserWarning, match="cannot be stored"):
+        out = compilation.persistent_jit(checked)(jnp.ones(3))
+    np.testing.assert_array_equal(np.asarray(out), 2.0 * np.ones(3))
+    assert not list(store.glob("*.jaxexport"))
+
+
+def test_with_the_store_off_it_is_jax_jit(monkeypatch, tmp_path):
+    monkeypatch.setattr(compilation, "_store", [])
+    rig, x = _inputs()
+    log = []
+    out = traced(log)(rig, x, 0.25, power=2)
+    expected = jax.jit(affine, static_argnames=("power",))(rig, x, 0.25, power=2)
+    assert log == [2] and jax.tree.structure(out) == jax.tree.structure(expected)
+    assert not list(tmp_path.rglob("*.jaxexport"))
