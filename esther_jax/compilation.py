@@ -105,7 +105,8 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, treedef, st
     import jax.export
 
     key = hashlib.sha256()
-    for part in (_source_digest(), jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision, name, str(treedef), repr(static), repr(avals)):
+    config = (jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision)
+    for part in (_source_digest(), config, name, str(treedef), repr(static), repr(avals)):
         key.update(repr(part).encode() + b"\0")
     path = _store[0] / f"{name}-{key.hexdigest()[:40]}.jaxexport"
     shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals]

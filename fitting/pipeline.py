@@ -18,7 +18,6 @@ reports them separately.
 """
 
 import dataclasses
-import functools
 import time
 
 import jax
