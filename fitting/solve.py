@@ -53,9 +53,43 @@ def _flat(residuals: Callable, unravel: Callable, args) -> Callable:
     return f
 
 
+SMALL_SYSTEM = 8
+"""Up to this many unknowns, `gauss_newton` and `cholesky_solve` work element by element."""
+
+
 def gauss_newton(residuals: Float[Array, "m"], jacobian: Float[Array, "m n"]) -> tuple[Float[Array, "n"], Float[Array, "n n"]]:
-    """The Gauss-Newton gradient J^T r and matrix J^T J of residuals r with Jacobian J."""
-    return jacobian.T @ residuals, jacobian.T @ jacobian
+    """The Gauss-Newton gradient J^T r and matrix J^T J of residuals r with Jacobian J.
+
+    Up to `SMALL_SYSTEM` unknowns as elementwise products summed over the residuals: under
+    `vmap` over many small problems XLA's CPU backend runs that faster than a batch of tiny
+    matrix products (1600 palm poses, 36 x 6: 2.0 against 2.9 ms); larger ones as products."""
+    if jacobian.shape[1] > SMALL_SYSTEM:
+        return jacobian.T @ residuals, jacobian.T @ jacobian
+    return jnp.sum(jacobian * residuals[:, None], axis=0), jnp.sum(jacobian[:, :, None] * jacobian[:, None, :], axis=0)
+
+
+def cholesky_solve(A: Float[Array, "n n"], b: Float[Array, "n"]) -> Float[Array, "n"]:
+    """x with A x = b for a symmetric positive definite A, by Cholesky factorisation.
+
+    Up to `SMALL_SYSTEM` unknowns (the palm pose's 6) the factorisation and both triangular
+    solves are written out entry by entry: under `vmap` each entry is one elementwise
+    operation over the whole batch, about 10x faster on the CPU than a batch of LAPACK calls
+    (1600 6x6 systems: 0.11 against 1.2 ms). Larger systems go to `jax.scipy.linalg`."""
+    n = A.shape[-1]
+    if n > SMALL_SYSTEM:
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), b)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        L[j][j] = jnp.sqrt(A[j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        for i in range(j + 1, n):
+            L[i][j] = (A[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    y: list = []
+    for i in range(n):  # L y = b
+        y.append((b[i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i])
+    x: list = [None] * n
+    for i in reversed(range(n)):  # L^T x = y
+        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, n))) / L[i][i]
+    return jnp.stack(x)
 
 
 def levenberg_marquardt(
@@ -88,7 +122,7 @@ def levenberg_marquardt(
         x, res, lam, _ = carry
         g, H = linearise(x, res)
         A = H + lam * (jnp.diag(jnp.diag(H)) + 1e-6 * eye)
-        dx = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), g)
+        dx = -cholesky_solve(A, g)
         trial = f(x + dx)
         cost, new_cost = jnp.sum(res * res), jnp.sum(trial * trial)
         accept = jnp.isfinite(new_cost) & (new_cost < cost)

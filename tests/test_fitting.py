@@ -260,6 +260,22 @@ def test_one_and_three_detectors_label(clean_two_hands):
         assert p[ok].mean() < 0.010 and w[ok].mean() < 0.012
 
 
+def test_small_systems_element_by_element_equal_the_matrix_forms(x64):
+    """`solve.gauss_newton` and `solve.cholesky_solve` below and above `SMALL_SYSTEM`
+    unknowns (element by element, and matrix products / LAPACK), batched under vmap."""
+    from fitting import solve
+
+    rng = np.random.default_rng(3)
+    for n in (solve.SMALL_SYSTEM - 2, solve.SMALL_SYSTEM + 4):
+        J, r = rng.normal(size=(5, 3 * n, n)), rng.normal(size=(5, 3 * n))
+        g, H = jax.vmap(solve.gauss_newton)(jnp.asarray(r), jnp.asarray(J))
+        np.testing.assert_allclose(g, np.einsum("bmn,bm->bn", J, r), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(H, np.einsum("bmn,bmk->bnk", J, J), rtol=1e-12, atol=1e-12)
+        b = rng.normal(size=(5, n))
+        x = jax.vmap(solve.cholesky_solve)(H, jnp.asarray(b))
+        np.testing.assert_allclose(x, np.linalg.solve(np.asarray(H), b[..., None])[..., 0], rtol=1e-9, atol=1e-9)
+
+
 def test_step_counts_do_not_recompile(clean_two_hands):
     """The solver's step counts are traced: other counts per stage reuse the compiled programs."""
     clip = clean_two_hands
