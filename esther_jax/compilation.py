@@ -13,6 +13,8 @@ than loading them (about 11 s against 2 s on a 2-core machine). Functions decora
 (`jax.export`, in `programs/`), keyed by this library's source, the versions of the
 libraries it traces through, the backend, the arguments' structure, shapes and dtypes and
 the static arguments; a later process deserialises it and goes straight to the XLA cache.
+Neither store is ever pruned (a changed library or jax version writes new files beside the
+old ones): delete the folder to reclaim its space.
 
 JAX never stores a program that contains a host callback (`jax.pure_callback`,
 `eqx.error_if`, `jax.debug.print`), and `jax.export` cannot serialise one: the library's
@@ -37,7 +39,6 @@ DEFAULT_DIR = pathlib.Path("~/.cache/esther_jax/xla")
 PROGRAMS = "programs"
 _MAGIC = b"esther-jax program 1\n"
 _store: list[pathlib.Path] = []  # the folder of stored programs once enabled (one entry)
-_digest: list[str] = []  # this library's source digest, computed once per process
 
 
 def enable_compilation_cache(directory: str | os.PathLike | None = None, *, min_compile_time_s: float = 0.0) -> pathlib.Path:
@@ -106,7 +107,7 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, treedef, st
 
     key = hashlib.sha256()
     config = (jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision)
-    for part in (_source_digest(), config, name, str(treedef), repr(static), repr(avals)):
+    for part in (_SOURCE, config, name, str(treedef), repr(static), repr(avals)):
         key.update(repr(part).encode() + b"\0")
     path = _store[0] / f"{name}-{key.hexdigest()[:40]}.jaxexport"
     shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals]
@@ -187,18 +188,20 @@ class _Unpickler(pickle.Unpickler):
 
 
 def _source_digest() -> str:
-    """What a stored program depends on besides its arguments: this library's source and
-    the versions of the libraries it traces through."""
-    if not _digest:
-        import esther_jax
-        import fitting
+    """What a stored program depends on besides its arguments: this library's source (as
+    this process found it when it imported the library, so that files edited while it runs
+    cannot key programs traced from the old code) and the versions of the libraries it
+    traces through."""
+    import importlib.util
 
-        h = hashlib.sha256()
-        for package in (esther_jax, fitting):
-            root = pathlib.Path(package.__file__).parent
-            for path in sorted(root.rglob("*.py")):
-                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
-        for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
-            h.update(f"{dist}={importlib.metadata.version(dist)}\0".encode())
-        _digest.append(h.hexdigest())
-    return _digest[0]
+    h = hashlib.sha256()
+    for package in ("esther_jax", "fitting"):
+        root = pathlib.Path(importlib.util.find_spec(package).origin).parent  # found, not imported
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+        h.update(f"{dist}={importlib.metadata.version(dist)}\0".encode())
+    return h.hexdigest()
+
+
+_SOURCE = _source_digest()

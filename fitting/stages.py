@@ -15,7 +15,6 @@ lock's result depends only on its chosen frames; the other frames' solutions are
 starts for `fit_frames`.
 """
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
