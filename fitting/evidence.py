@@ -256,9 +256,10 @@ def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36
     R, t = y.pose(R0, t0)
     Q = P @ R.T
     turn = -skew(Q) @ axis_angle_left_jacobian(y.rotation)  # (6, 3, 3)
-    dX = jnp.concatenate([turn, jnp.broadcast_to(0.01 * jnp.eye(3, dtype=Q.dtype), (6, 3, 3))], axis=-1)  # (6, 3, 6)
     X_views = rig.to_views(Q + t[None])  # (2, 6, 3)
-    dX_views = jnp.einsum("vab,ibu->viau", rig.T_cams_rig[:, :3, :3], dX)  # (2, 6, 3, 6)
+    R_views = rig.T_cams_rig[:, :3, :3]
+    dX_views = jnp.concatenate([  # (2, 6, 3, 6): turning, then moving the wrist
+        jnp.einsum("vab,ibu->viau", R_views, turn), jnp.broadcast_to(0.01 * R_views[:, None], (2, 6, 3, 3))], axis=-1)  # fmt: skip
     n = vector_norm(X_views)[..., None]
     direction = X_views / n
     along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
