@@ -24,6 +24,7 @@ compiled hot paths contain none, and validate their inputs at the edge instead.
 import functools
 import hashlib
 import importlib.metadata
+import importlib.util
 import inspect
 import io
 import os
@@ -33,6 +34,7 @@ import warnings
 from collections.abc import Callable
 
 import jax
+import jax.export
 import jax.numpy as jnp
 
 DEFAULT_DIR = pathlib.Path("~/.cache/esther_jax/xla")
@@ -103,8 +105,6 @@ def persistent_jit(fun: Callable | None = None, *, static_argnames: tuple[str, .
 def _program(fun: Callable, signature: inspect.Signature, name: str, treedef, static: tuple, avals: tuple):
     """The compiled program and output structure of `fun` at one signature: loaded from
     the store, or traced, exported and stored."""
-    import jax.export
-
     key = hashlib.sha256()
     config = (jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision)
     for part in (_SOURCE, config, name, str(treedef), repr(static), repr(avals)):
@@ -153,8 +153,6 @@ def _load(path: pathlib.Path, packages: tuple[str, ...]):
     """(exported, output treedef) from a stored program, or None when there is none or it
     cannot be read (then it is traced again and the file replaced). The output structure
     may name classes of `packages` only."""
-    import jax.export
-
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -192,8 +190,6 @@ def _source_digest() -> str:
     this process found it when it imported the library, so that files edited while it runs
     cannot key programs traced from the old code) and the versions of the libraries it
     traces through."""
-    import importlib.util
-
     h = hashlib.sha256()
     for package in ("esther_jax", "fitting"):
         root = pathlib.Path(importlib.util.find_spec(package).origin).parent  # found, not imported
