@@ -26,7 +26,7 @@ import numpy as np
 
 from esther_jax import mano
 from esther_jax.cameras import StereoRig
-from esther_jax.compilation import persistent_jit
+from esther_jax.compilation import CPU_LIGHT_OPTIMISATION, CPU_QUICK_COMPILE, persistent_jit
 
 from . import evidence as ev, fusion, quality, stages
 from .objectives import FitWeights, Problem
@@ -132,19 +132,19 @@ def check_keypoints(keypoints: dict, fps: float) -> tuple[int, int]:
     return D, T
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _prepare(model, rig, uv, conf, box, box_score):
     fused = fusion.fuse(uv, conf, box, box_score)
     evidence = ev.prefilter(rig, fused, ev.template_bones(model))
     return fused, evidence
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _problem(model, rig, weights, betas, fps) -> Problem:
     return Problem(model, rig, mano.PosePrior.from_model(model, betas), MotionPrior(), weights, betas, fps)
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_LIGHT_OPTIMISATION)
 def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous=None):
     init = ev.initialise(model, rig, evidence, betas, previous)
     init = ev.Initial(
@@ -155,14 +155,14 @@ def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previo
     return init, pose
 
 
-@persistent_jit(static_argnames=("min_joints",))
+@persistent_jit(static_argnames=("min_joints",), compiler_options=CPU_QUICK_COMPILE)
 def _observed(evidence, min_joints: int):
     per_view = jnp.sum(evidence.weight > 0, axis=2)  # (L, 2)
     seen = per_view >= min_joints
     return seen, jnp.any(seen, axis=1), jnp.all(seen, axis=1)
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _finish(model, rig, fits, fused, seen, observed, reject_px):
     joints = jax.vmap(lambda p: mano.forward_joints(model, p, check_finite=False))(fits.params())
     residual, passing = quality.reprojection_filter(rig, joints, fused.uv, fused.conf, reject_px)

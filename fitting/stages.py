@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from esther_jax import mano
-from esther_jax.compilation import persistent_jit
+from esther_jax.compilation import CPU_LIGHT_OPTIMISATION, CPU_QUICK_COMPILE, persistent_jit
 from esther_jax.rotations import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_rotation_6d, rotation_6d_to_matrix
 
 from . import solve
@@ -85,7 +85,7 @@ def solve_round(
     return _solve_round(problem, y0, data, track, round, None, solver=solver, max_steps=steps)
 
 
-@persistent_jit(static_argnames=("solver", "max_steps"))
+@persistent_jit(static_argnames=("solver", "max_steps"), compiler_options=CPU_LIGHT_OPTIMISATION)
 def _solve_round(problem, y0, data, track, round, steps, *, solver: str, max_steps: int | None) -> solve.Solution:
     steps = steps if max_steps is None else max_steps
     return solve.solve_batch(frame_residuals, y0, (problem, round), (data, track), steps=steps, solver=solver, normal_equations=frame_normal_equations)
@@ -95,7 +95,7 @@ def _unknowns(fits: Fits, data: FrameData, betas0: Float[Array, "10"]) -> FrameU
     return FrameUnknowns(fits.global_orient, fits.hand_pose, 100.0 * (fits.transl - data.anchor), fits.betas - betas0[None])
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _to_fits(y: FrameUnknowns, data: FrameData, betas: Float[Array, "10"], free: Float[Array, ""], converged) -> Fits:
     T = y.global_orient.shape[0]
     return Fits(y.global_orient, y.hand_pose, data.anchor + 0.01 * y.transl_cm, jnp.broadcast_to(betas, (T, 10)) + free * y.betas, converged)
@@ -116,7 +116,7 @@ def _rounds(problem, fits, data, track, rounds, steps, solver) -> Fits:
     return _to_fits(y, data, problem.betas, rounds[-1].free_betas, converged)
 
 
-@persistent_jit(static_argnames=("frames",))
+@persistent_jit(static_argnames=("frames",), compiler_options=CPU_QUICK_COMPILE)
 def _choose(weight: Float[Array, "T 2 21"], stereo: Bool[Array, "T"], observed: Bool[Array, "T"], frames: int):
     # the hand's size is seen through the joints both views observe (triangulation fixes
     # their depth); a monocular frame's shape only through its proportions
@@ -130,7 +130,7 @@ def _choose(weight: Float[Array, "T 2 21"], stereo: Bool[Array, "T"], observed: 
     return chosen, ~jnp.any(stereo)
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def pooled_betas(problem: Problem, y: FrameUnknowns, data: FrameData, track: Track, round: Round, chosen: Bool[Array, "frames"]) -> Float[Array, "10"]:
     """One shape from the chosen frames' shape-lock solutions, each weighted by the
     information its data carry about the shape.
@@ -219,7 +219,7 @@ def _trajectory(fits: Fits) -> Float[Array, "T 54"]:
     return jnp.concatenate([matrix_to_rotation_6d(R), fits.hand_pose.reshape(-1, 45), 100.0 * fits.transl], axis=1)
 
 
-@persistent_jit(static_argnames=("window", "stride"))
+@persistent_jit(static_argnames=("window", "stride"), compiler_options=CPU_QUICK_COMPILE)
 def smooth_track(problem: Problem, fits: Fits, confidence: Float[Array, "T"], observed: Bool[Array, "T"], *, window: int = 16, stride: int = 8) -> Track:
     """The motion prior over every sliding window in parallel, overlaps blended with
     triangular weights (no seams), packaged as targets and neighbours for the refit."""
@@ -255,7 +255,7 @@ def smooth_track(problem: Problem, fits: Fits, confidence: Float[Array, "T"], ob
     )
 
 
-@persistent_jit
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _track_fits(track: Track, fits: Fits) -> Fits:
     return Fits(track.pose_target[:, 0], track.pose_target[:, 1:], track.transl_target, fits.betas, fits.converged)
 

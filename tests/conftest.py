@@ -4,7 +4,13 @@ warnings are errors (pyproject), shape annotations checked at run time (addopts)
 import os
 import pathlib
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+# The tests run small shapes, where XLA's compilation is most of the time: LLVM's lighter
+# optimisation level and the loop emitters for fusions (what `compilation.CPU_QUICK_COMPILE`
+# asks for per program) compile the same programs in less time; a cold run of
+# test_model.py took 249 s with them and 409 s without (2 cores). The benchmarks measure
+# the default compiler. Flags the caller sets come after these and override them.
+TEST_XLA_FLAGS = "--xla_force_host_platform_device_count=1 --xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
+os.environ["XLA_FLAGS"] = f"{TEST_XLA_FLAGS} {os.environ.get('XLA_FLAGS', '')}".strip()
 
 import jax
 import pytest

@@ -107,3 +107,27 @@ def test_with_the_store_off_it_is_jax_jit(monkeypatch, tmp_path):
     expected = jax.jit(affine, static_argnames=("power",))(rig, x, 0.25, power=2)
     assert log == [2] and jax.tree.structure(out) == jax.tree.structure(expected)
     assert not list(tmp_path.rglob("*.jaxexport"))
+
+
+@pytest.mark.parametrize("stored", [True, False])
+def test_compiler_options_reach_the_backend_they_name(stored, monkeypatch, tmp_path):
+    """The options of this backend are compiled with (an unknown XLA option is refused by
+    XLA itself, which shows they reach it), another backend's are ignored; store on or off."""
+    monkeypatch.setattr(compilation, "_store", [tmp_path] if stored else [])
+    x = jnp.linspace(0.0, 1.0, 5)
+    here = jax.default_backend()
+    quick = compilation.persistent_jit(lambda v: jnp.sin(v) * 2.0, compiler_options=compilation.CPU_QUICK_COMPILE)
+    np.testing.assert_allclose(np.asarray(quick(x)), 2.0 * np.sin(np.asarray(x)), rtol=1e-6)
+    elsewhere = compilation.persistent_jit(lambda v: v + 1.0, compiler_options={f"not-{here}": {"xla_no_such_option": True}})
+    np.testing.assert_array_equal(np.asarray(elsewhere(x)), np.asarray(x) + 1.0)
+    refused = compilation.persistent_jit(lambda v: v - 1.0, compiler_options={here: {"xla_no_such_option": True}})
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        refused(x)
+
+
+def test_two_functions_of_one_name_are_two_programs(store):
+    x = jnp.arange(3.0)
+    plus, times = compilation.persistent_jit(lambda v: v + 1.0), compilation.persistent_jit(lambda v: v * 3.0)
+    np.testing.assert_array_equal(np.asarray(plus(x)), np.arange(3.0) + 1.0)
+    np.testing.assert_array_equal(np.asarray(times(x)), np.arange(3.0) * 3.0)
+    assert len(list(store.glob("*.jaxexport"))) == 2

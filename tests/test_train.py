@@ -482,7 +482,7 @@ def test_robustness_conditions_run_through_the_network(synth_clip):
 
 _DATA_PARALLEL = r"""
 import os, sys
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"  # the suite's compiler flags, 4 devices
 import jax
 import numpy as np
 jax.config.update("jax_compilation_cache_dir", os.environ["ESTHER_JAX_CACHE"])
@@ -525,7 +525,7 @@ def test_data_parallel_steps_equal_the_single_device_run(synth_clip, tmp_path):
         state, metrics = trainer.step(state, *train.load_batch(windows, data_cfg, cfg.batch, cfg.seed, step))
         losses.append(float(metrics["loss"]))
 
-    env = {**{k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, "ESTHER_JAX_CACHE": jax.config.jax_compilation_cache_dir}
+    env = {**os.environ, "ESTHER_JAX_CACHE": jax.config.jax_compilation_cache_dir}
     out = tmp_path / "four.npz"
     done = subprocess.run([sys.executable, "-c", _DATA_PARALLEL, str(synth_clip), str(RUN_FRAMES), str(RUN_BATCH), str(out)],
                           capture_output=True, text=True, env=env, timeout=900)  # fmt: skip
