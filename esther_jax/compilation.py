@@ -92,7 +92,8 @@ def persistent_jit(
     `compiler_options` maps a backend's platform name (`"cpu"`, `"gpu"`, ...) to the XLA
     options its programs are compiled with (`jax.jit`'s `compiler_options`), read when a
     program is first compiled: e.g. `CPU_QUICK_COMPILE` for programs that run once per job,
-    whose compilation would cost more than their run.
+    whose compilation would cost more than their run. Options the installed XLA does not
+    know are dropped with a warning.
 
     With the store enabled, each new combination of the arguments' pytree structure, their
     shapes and dtypes and the static arguments' values is traced and exported once per
@@ -106,9 +107,12 @@ def persistent_jit(
         return functools.partial(persistent_jit, static_argnames=static_argnames, compiler_options=compiler_options)
     options_by_platform = dict(compiler_options or {})
 
-    @functools.cache  # at the first call: asking for the backend at import would initialise it
+    def options_here() -> dict | None:  # at a call: asking for the backend at import would initialise it
+        return _known_options(tuple(sorted(options_by_platform.get(jax.default_backend(), {}).items())))
+
+    @functools.cache
     def jitted():
-        return jax.jit(fun, static_argnames=static_argnames, compiler_options=options_by_platform.get(jax.default_backend()))
+        return jax.jit(fun, static_argnames=static_argnames, compiler_options=options_here())
 
     signature = inspect.signature(fun)
     name = f"{fun.__module__}.{fun.__qualname__}"
@@ -127,8 +131,7 @@ def persistent_jit(
         avals = tuple((x.shape, x.dtype) for x in leaves)
         key = (treedef, static, avals)
         if key not in programs:
-            options = options_by_platform.get(jax.default_backend())
-            programs[key] = _program(fun, signature, name, code, treedef, static, avals, options)
+            programs[key] = _program(fun, signature, name, code, treedef, static, avals, options_here())
         compiled, out_treedef = programs[key]
         if compiled is None:  # not exportable: jax.jit's program, warned about once
             return jitted()(*args, **kwargs)
@@ -173,6 +176,25 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, 
         _save(path, exported, jax.tree.unflatten(out_treedef, list(range(out_treedef.num_leaves))))
     run = functools.wraps(fun)(lambda *leaves: exported.call(*leaves))
     return jax.jit(run).lower(*shapes).compile(compiler_options=None if options is None else dict(options)), out_treedef
+
+
+@functools.cache
+def _known_options(items: tuple) -> dict | None:
+    """The XLA options `items` (sorted (name, value) pairs) less those this XLA release does
+    not know, which are dropped with a warning: they only cheapen compilation, and XLA's
+    option names change between releases. Checked once per set on a trivial program."""
+    options = dict(items)
+    while options:
+        try:
+            jax.jit(lambda x: x).lower(jnp.zeros(())).compile(compiler_options=options)
+            return options
+        except RuntimeError as err:  # XLA: "INVALID_ARGUMENT: No such compile option: 'name'"
+            unknown = [k for k in options if f"'{k}'" in str(err)]
+            if "No such compile option" not in str(err) or not unknown:
+                raise
+            warnings.warn(f"this XLA does not know the compiler option {unknown[0]!r}; compiling without it", stacklevel=4)
+            del options[unknown[0]]
+    return None
 
 
 def _save(path: pathlib.Path, exported, skeleton) -> None:
