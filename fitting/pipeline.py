@@ -17,7 +17,9 @@ frames, not from triangulation). `labels["stereo"]` tells them apart, and `quali
 reports them separately.
 """
 
+import contextlib
 import dataclasses
+import threading
 import time
 
 import jax
@@ -190,7 +192,22 @@ def label_hand(
             in place of the mean shape (one view cannot tell size from distance).
     Returns:
         (labels, quality): the labels.npz arrays and the quality.json content.
+
+    Calls from several threads take turns on the CPU (`_CPU_TURNS`).
     """
+    with _CPU_TURNS if jax.default_backend() == "cpu" else contextlib.nullcontext():
+        return _label_hand(model, rig, keypoints, fps, config, monocular, shape)
+
+
+_CPU_TURNS = threading.Lock()
+"""Held while a `label_hand` call runs on the CPU. Two threads labelling hands at once hung
+for good on a 2-core machine (both waiting in the shape lock's solver): XLA's CPU runtime
+runs a while loop's iterations on its thread pool and can block a pool thread in it
+(openxla/xla#33048), so two programs of while loops can take every thread of a small pool
+and wait on each other. So concurrent calls run one after another, as from one thread."""
+
+
+def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[dict, dict]:
     D, T = check_keypoints(keypoints, fps)
     timings = {}  # seconds per stage, each stage waited for (JAX dispatches asynchronously)
     t0 = time.perf_counter()

@@ -1,3 +1,4 @@
+import concurrent.futures
 import json
 
 import jax
@@ -225,8 +226,10 @@ def clean_two_hands():
 @pytest.mark.slow
 def test_labels_match_the_ground_truth(clean_two_hands):
     clip = clean_two_hands
+    sequential = {}
     for side in clip.keypoints:
         labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0)
+        sequential[side] = labels
         gt = clip.gt[side]
         ok = labels["valid"] & gt["onscreen"]
         assert ok.sum() >= 0.7 * gt["onscreen"].sum()
@@ -234,6 +237,11 @@ def test_labels_match_the_ground_truth(clean_two_hands):
         assert np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))[ok].mean() < 0.008
         assert np.asarray(jax.vmap(metrics.wrist_error)(pred, true))[ok].mean() < 0.01
         assert report["share_passing"] > 0.7 and report["all"]["table"]["reprojection_residual_px"]["median"] < 12.0
+    # from two threads at once: the calls take turns (both hung in XLA's CPU runtime before) and label the same
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        futures = {side: pool.submit(label_hand, mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0) for side in clip.keypoints}
+        for side, future in futures.items():
+            np.testing.assert_array_equal(future.result(timeout=600)[0]["joints"], sequential[side]["joints"])
 
 
 def _scores(labels, gt):
