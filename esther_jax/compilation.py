@@ -87,7 +87,8 @@ def persistent_jit(
     fun: Callable | None = None, *, static_argnames: tuple[str, ...] = (), compiler_options: Mapping[str, Mapping[str, Any]] | None = None
 ) -> Callable:
     """`jax.jit`, whose lowered program is also stored once `enable_compilation_cache` has
-    been called (before that it is exactly `jax.jit(fun, static_argnames=...)`).
+    been called (before that it is exactly `jax.jit(fun, static_argnames=...,
+    compiler_options=...)` with this backend's options).
 
     `compiler_options` maps a backend's platform name (`"cpu"`, `"gpu"`, ...) to the XLA
     options its programs are compiled with (`jax.jit`'s `compiler_options`), read when a
