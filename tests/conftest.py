@@ -3,14 +3,22 @@ warnings are errors (pyproject), shape annotations checked at run time (addopts)
 
 import os
 import pathlib
+import subprocess
+import sys
 
 # The tests run small shapes, where XLA's compilation is most of the time: LLVM's lighter
 # optimisation level and the loop emitters for fusions (what `compilation.CPU_QUICK_COMPILE`
 # asks for per program) compile the same programs in less time; a cold run of
 # test_model.py took 249 s with them and 409 s without (2 cores). The benchmarks measure
-# the default compiler. Flags the caller sets come after these and override them.
-TEST_XLA_FLAGS = "--xla_force_host_platform_device_count=1 --xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
-os.environ["XLA_FLAGS"] = f"{TEST_XLA_FLAGS} {os.environ.get('XLA_FLAGS', '')}".strip()
+# the default compiler. Flags the caller sets come after these and override them. An XLA
+# that does not know a flag of XLA_FLAGS aborts the process, so a subprocess tries them
+# first, once per run (xdist workers inherit the answer), and they are left out if refused.
+QUICK_COMPILE_FLAGS = "--xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
+if "ESTHER_TEST_XLA_FLAGS" not in os.environ:
+    _probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env={**os.environ, "XLA_FLAGS": QUICK_COMPILE_FLAGS},
+                            capture_output=True, timeout=300)  # fmt: skip
+    os.environ["ESTHER_TEST_XLA_FLAGS"] = QUICK_COMPILE_FLAGS if _probe.returncode == 0 else ""
+os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count=1 {os.environ['ESTHER_TEST_XLA_FLAGS']} {os.environ.get('XLA_FLAGS', '')}".strip()
 
 import jax
 import pytest
