@@ -50,6 +50,7 @@ DEFAULT_DIR = pathlib.Path("~/.cache/esther_jax/xla")
 PROGRAMS = "programs"
 _MAGIC = b"esther-jax program 1\n"
 _store: list[pathlib.Path] = []  # the folder of stored programs once enabled (one entry)
+_LIBRARY = ("esther_jax", "fitting")  # the packages whose source `_SOURCE` digests
 
 CPU_QUICK_COMPILE: dict[str, dict[str, Any]] = {"cpu": {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}}
 """`persistent_jit` options for programs that run once per job (setup, bookkeeping): on the
@@ -141,7 +142,7 @@ def persistent_jit(
     return call
 
 
-def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, treedef, static: tuple, avals: tuple, options: Mapping | None):
+def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, treedef, static: tuple, avals: tuple, options: dict | None):
     """The compiled program (XLA `options`) and output structure of `fun` at one
     signature: loaded from the store, or traced, exported and stored. The stored program
     does not depend on the options: they are part of the XLA cache's key."""
@@ -151,7 +152,7 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, 
         key.update(repr(part).encode() + b"\0")
     path = _store[0] / f"{name}-{key.hexdigest()[:40]}.jaxexport"
     shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals]
-    loaded = _load(path, packages=("esther_jax", "fitting", fun.__module__.split(".")[0]))
+    loaded = _load(path, packages=(*_LIBRARY, fun.__module__.split(".")[0]))
     if loaded is not None:
         exported, out_treedef = loaded
     else:
@@ -176,7 +177,7 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, 
         out_treedef = structure[0]
         _save(path, exported, jax.tree.unflatten(out_treedef, list(range(out_treedef.num_leaves))))
     run = functools.wraps(fun)(lambda *leaves: exported.call(*leaves))
-    return jax.jit(run).lower(*shapes).compile(compiler_options=None if options is None else dict(options)), out_treedef
+    return jax.jit(run).lower(*shapes).compile(compiler_options=options), out_treedef
 
 
 @functools.cache
@@ -250,7 +251,7 @@ def _source_digest() -> str:
     cannot key programs traced from the old code) and the versions of the libraries it
     traces through."""
     h = hashlib.sha256()
-    for package in ("esther_jax", "fitting"):
+    for package in _LIBRARY:
         root = pathlib.Path(importlib.util.find_spec(package).origin).parent  # found, not imported
         for path in sorted(root.rglob("*.py")):
             h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
@@ -274,7 +275,7 @@ def _code_digest(fun: Callable) -> str:
         h.update(part.encode() if isinstance(part, str) else part)
     module = sys.modules.get(fun.__module__)
     file = getattr(module, "__file__", None)
-    if file and fun.__module__.split(".")[0] not in ("esther_jax", "fitting"):
+    if file and fun.__module__.split(".")[0] not in _LIBRARY:
         try:
             h.update(pathlib.Path(file).read_bytes())
         except OSError:  # a module without a readable source file: its code object alone
