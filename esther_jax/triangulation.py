@@ -75,6 +75,7 @@ def _solve_symmetric3(M: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Arr
     return jnp.stack([x, y, z])
 
 
+@eqx.filter_jit  # one program when called eagerly (inlined when traced): see cameras._takes
 def triangulate(
     cameras: AbstractCamera | Sequence[AbstractCamera],
     T_rig_cams: Float[Array, "views 4 4"],
@@ -217,6 +218,7 @@ def weak_perspective_to_translation(
     return jnp.stack([t_x, t_y, t_z])
 
 
+@eqx.filter_jit
 def triangulate_batch(
     cameras: AbstractCamera | Sequence[AbstractCamera],
     T_rig_cams: Float[Array, "views 4 4"],
