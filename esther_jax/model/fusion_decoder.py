@@ -19,6 +19,7 @@ wrist token.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._math import matmul3
@@ -140,19 +141,24 @@ def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"], dtype=None) -
     `dtype` (default: the tokens'; float32 geometry under mixed precision).
     """
     dtype = tokens.dtype if dtype is None else dtype
-    local6 = [None] * NUM_POSE_TOKENS
-    world = [None] * NUM_POSE_TOKENS
     identity6 = jnp.asarray(_IDENTITY_6D, dtype)
-    for joints in _levels(MANO_PARENTS):
-        parent6 = jnp.stack([identity6 if MANO_PARENTS[j] < 0 else matrix_to_rotation_6d(world[MANO_PARENTS[j]]) for j in joints])
-        out = head(jnp.concatenate([tokens[jnp.asarray(joints)], parent6.astype(tokens.dtype)], axis=-1)).astype(dtype) + identity6
+    order: list[int] = []  # the joints decoded so far: the rows of `world`
+    local6, local, world = [], [], None
+    for joints in _levels(MANO_PARENTS):  # the root alone, then whole levels at once
+        if world is None:
+            parent_world, parent6 = None, jnp.broadcast_to(identity6, (len(joints), 6))
+        else:
+            parent_world = world[np.asarray([order.index(MANO_PARENTS[j]) for j in joints])]
+            parent6 = matrix_to_rotation_6d(parent_world)
+        out = head(jnp.concatenate([tokens[np.asarray(joints)], parent6.astype(tokens.dtype)], axis=-1)).astype(dtype) + identity6
         R = rotation_6d_to_matrix(out)
-        for k, j in enumerate(joints):
-            parent = MANO_PARENTS[j]
-            local6[j] = out[k]
-            world[j] = R[k] if parent < 0 else matmul3(world[parent], R[k])
-    local6 = jnp.stack(local6)
-    return local6, rotation_6d_to_matrix(local6)
+        level_world = R if parent_world is None else matmul3(parent_world, R)
+        world = level_world if world is None else jnp.concatenate([world, level_world])
+        order += joints
+        local6.append(out)
+        local.append(R)
+    mano_order = np.argsort(order)
+    return jnp.concatenate(local6)[mano_order], jnp.concatenate(local)[mano_order]
 
 
 class FusionDecoder(eqx.Module):
