@@ -191,7 +191,14 @@ def forward(model: ManoModel, params: ManoParams, *, check_finite: bool = True) 
     Returns:
         `ManoOutput` with vertices (V, 3), joints (21, 3), transforms (16, 4, 4), metres.
     """
-    params = _check_params(model, params, check_finite)
+    return _forward(model, _check_params(model, params, check_finite))
+
+
+# The forward functions' bodies are compiled programs (`eqx.filter_jit`, inlined when
+# traced): called eagerly (data generation, notebooks, checks), the kinematic chain's small
+# operations would each be compiled on their own for every new shape.
+@eqx.filter_jit
+def _forward(model: ManoModel, params: ManoParams) -> ManoOutput:
     shaped = with_shape(model, params.betas)
     return _posed_output(model, shaped, with_pose(model, shaped, params))
 
@@ -205,6 +212,11 @@ def forward_rotations(
     """
     if local.shape != (16, 3, 3) or transl.shape != (3,):
         raise ValueError(f"forward_rotations takes one hand: local (16, 3, 3), transl (3,); got {local.shape}, {transl.shape}")
+    return _forward_rotations(model, local, betas, transl)
+
+
+@eqx.filter_jit
+def _forward_rotations(model: ManoModel, local: Float[Array, "16 3 3"], betas: Float[Array, "betas"], transl: Float[Array, "3"]) -> ManoOutput:
     shaped = with_shape(model, betas)
     return _posed_output(model, shaped, with_rotations(model, shaped, local, transl))
 
@@ -230,7 +242,11 @@ def forward_joints(
     slower than plain autodiff, hence off by default. Derivatives in the model's
     arrays always take plain autodiff.
     """
-    params = _check_params(model, params, check_finite)
+    return _forward_joints(model, _check_params(model, params, check_finite), analytic_jvp)
+
+
+@eqx.filter_jit
+def _forward_joints(model: ManoModel, params: ManoParams, analytic_jvp: bool) -> Float[Array, "21 3"]:
     return (_joints if analytic_jvp else _joints_autodiff)(model, params)
 
 
@@ -386,6 +402,7 @@ def _homogeneous(posed: PosedHand) -> Float[Array, "16 4 4"]:
     return jnp.concatenate([top, bottom], axis=1)
 
 
+@eqx.filter_jit
 def rest_joints(model: ManoModel, betas: Float[Array, "betas"]) -> Float[Array, "16 3"]:
     """Rest-pose MANO joints `J(beta)` in the model frame (smplx's root pivot is row 0)."""
     return with_shape(model, betas).joints
