@@ -129,6 +129,7 @@ def _umeyama_rotation_jvp(primals, tangents):
     return (R, jnp.sum(S * D)), ((U * D[None]) @ omega @ Vt, jnp.sum(R * dcov))
 
 
+@eqx.filter_jit  # one program when called eagerly (docs/architecture.md, conventions)
 def procrustes_align(
     pred: Float[Array, "joints 3"], gt: Float[Array, "joints 3"], mask: Bool[Array, "joints"] | None = None
 ) -> Float[Array, "joints 3"]:
@@ -157,6 +158,7 @@ def procrustes_align(
     return scale * p @ R.T + mu_g[None]
 
 
+@eqx.filter_jit
 def pa_mpjpe(pred: Float[Array, "joints 3"], gt: Float[Array, "joints 3"], mask: Bool[Array, "joints"] | None = None) -> Float[Array, ""]:
     """Procrustes-aligned MPJPE (metres): similarity transform of pred onto gt, no reflection."""
     return mpjpe(procrustes_align(pred, gt, mask), gt, mask)
