@@ -75,7 +75,7 @@ def _solve_symmetric3(M: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Arr
     return jnp.stack([x, y, z])
 
 
-@eqx.filter_jit  # one program when called eagerly (inlined when traced): see cameras._takes
+@eqx.filter_jit  # one program when called eagerly, inlined when traced (docs/architecture.md, conventions)
 def triangulate(
     cameras: AbstractCamera | Sequence[AbstractCamera],
     T_rig_cams: Float[Array, "views 4 4"],
