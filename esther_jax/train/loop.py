@@ -253,10 +253,12 @@ def _train_step(static: M.ESTHER, hand: mano.ManoModel, state: TrainState, clips
     if ema is not None:
         d = cfg.ema_decay
         ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
-    parts = {f"grad_norm/{part}": optax.tree.norm(getattr(grads, part)) for part in ("backbone", "image_encoder", "motion_encoder", "fusion_decoder")
-             if jax.tree.leaves(getattr(grads, part))}  # fmt: skip  (the parts the stage trains)
-    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": optax.tree.norm(grads), **parts,
-               "learning_rate": learning_rate}  # fmt: skip
+    # squared norms of the parts the stage trains (the four modules partition the weights):
+    # each gradient array is squared once, for the parts and the whole
+    squares = {part: optax.tree.norm(getattr(grads, part), squared=True) for part in ("backbone", "image_encoder", "motion_encoder", "fusion_decoder")
+               if jax.tree.leaves(getattr(grads, part))}  # fmt: skip
+    metrics = {"loss": loss, **{f"loss/{k}": v for k, v in means.items()}, "grad_norm": jnp.sqrt(sum(squares.values())),
+               **{f"grad_norm/{part}": jnp.sqrt(sq) for part, sq in squares.items()}, "learning_rate": learning_rate}  # fmt: skip
     return TrainState(state.step + 1, params, opt_state, ema), metrics
 
 
