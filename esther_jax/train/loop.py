@@ -522,4 +522,7 @@ def _truncate_metrics(path: pathlib.Path, step: int) -> None:
         tmp.write_text("".join(line + "\n" for line in kept))
 
 
-__all__ = ["NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "data_mesh", "decay_mask", "process_batch_slice", "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train"]
+__all__ = [
+    "NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "data_mesh", "decay_mask", "process_batch_slice",
+    "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train",
+]  # fmt: skip
