@@ -57,11 +57,11 @@ CPU_QUICK_COMPILE: dict[str, dict[str, Any]] = {"cpu": {"xla_backend_optimizatio
 CPU, LLVM's lighter optimisation level and XLA's loop emitters for fusions instead of its
 fusion emitters. Measured on the teacher (2 cores): its once-per-hand programs compile in
 about half the time (the shape pooling 6.3 -> 3.2 s); with every program compiled so the
-whole teacher ran about 10 % slower, so its solver and initialisation do not use them."""
+whole teacher ran about 10 % slower, so its solver and pose search do not use them."""
 
 CPU_LIGHT_OPTIMISATION: dict[str, dict[str, Any]] = {"cpu": {"xla_backend_optimization_level": 1}}
 """`persistent_jit` options for hot programs on the CPU: LLVM's lighter optimisation level
-only. On the teacher's solver and initialisation it saves about a tenth of their
+only. On the teacher's solver and pose search it saves about a tenth of their
 compilation, and their run time is the same within the measurement's noise."""
 
 
