@@ -167,8 +167,9 @@ def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has):
 def _restart(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous):
     """The initialisation refined with the locked shape (each frame's palm pose from its
     previous one only, about 11 ms of a hand), compiled cheaply: 2.6-3.0 s where it took
-    3.7-4.9 s with the search's options, its run time the same within noise."""
-    return _initial(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous)
+    3.7-4.9 s with the search's options, its run time the same within noise. The starting
+    pose of `_start` is not recomputed: the frame fits start from the shape lock's."""
+    return _initial(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous)[0]
 
 
 @persistent_jit(static_argnames=("min_joints",), compiler_options=CPU_QUICK_COMPILE)
@@ -268,7 +269,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
     borrowed = jnp.asarray(shape if has_shape else np.zeros(model.num_betas), dtype)
     betas = jnp.where(lock.from_monocular & has_shape, borrowed, lock.betas)
     problem = _problem(model, rig_t, weights, betas, fps_t)
-    init, _ = _restart(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
+    init = _restart(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
     fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
     jax.block_until_ready(fits)
