@@ -146,30 +146,32 @@ def _problem(model, rig, weights, betas, fps) -> Problem:
     return Problem(model, rig, mano.PosePrior.from_model(model, betas), MotionPrior(), weights, betas, fps)
 
 
-def _initial(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous):
+def _initial(model, rig, evidence, betas, mono_orient, mono_has, previous) -> ev.Initial:
+    """Each frame's palm pose (`evidence.initialise`), with the monocular fit's orientation
+    where a frame has one."""
     init = ev.initialise(model, rig, evidence, betas, previous)
-    init = ev.Initial(
+    return ev.Initial(
         init.transl, jnp.where(mono_has[:, None], mono_orient, init.global_orient),
         init.wrist_triangulated, init.wrist_monocular, init.palm_seen,
     )  # fmt: skip
-    pose = jnp.where(mono_has[:, None, None], mono_pose, jnp.broadcast_to(model.hands_mean.reshape(15, 3), mono_pose.shape))
-    return init, pose
 
 
 @persistent_jit(compiler_options=CPU_LIGHT_OPTIMISATION)
 def _start(model, rig, evidence, betas, mono_orient, mono_pose, mono_has):
     """The initialisation at the mean shape: the palm pose search (about 100 ms of a 64-frame
-    hand's 400 ms on 2 cores), compiled for run time."""
-    return _initial(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, None)
+    hand's 400 ms on 2 cores), compiled for run time; and the starting finger pose (the
+    monocular fit's where a frame has one, else the mean pose)."""
+    pose = jnp.where(mono_has[:, None, None], mono_pose, jnp.broadcast_to(model.hands_mean.reshape(15, 3), mono_pose.shape))
+    return _initial(model, rig, evidence, betas, mono_orient, mono_has, None), pose
 
 
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
-def _restart(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous):
+def _restart(model, rig, evidence, betas, mono_orient, mono_has, previous):
     """The initialisation refined with the locked shape (each frame's palm pose from its
     previous one only, about 11 ms of a hand), compiled cheaply: 2.6-3.0 s where it took
     3.7-4.9 s with the search's options, its run time the same within noise. The starting
     pose of `_start` is not recomputed: the frame fits start from the shape lock's."""
-    return _initial(model, rig, evidence, betas, mono_orient, mono_pose, mono_has, previous)[0]
+    return _initial(model, rig, evidence, betas, mono_orient, mono_has, previous)
 
 
 @persistent_jit(static_argnames=("min_joints",), compiler_options=CPU_QUICK_COMPILE)
@@ -269,7 +271,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
     borrowed = jnp.asarray(shape if has_shape else np.zeros(model.num_betas), dtype)
     betas = jnp.where(lock.from_monocular & has_shape, borrowed, lock.betas)
     problem = _problem(model, rig_t, weights, betas, fps_t)
-    init = _restart(model, rig_t, evidence, betas, dev["mono_orient"], dev["mono_pose"], mono_has, init)
+    init = _restart(model, rig_t, evidence, betas, dev["mono_orient"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
     fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
     jax.block_until_ready(fits)
