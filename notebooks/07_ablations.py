@@ -24,10 +24,12 @@
 #
 # `ESTHER_STUDY_SCALE=smoke|full python notebooks/07_ablations.py`; the full run writes
 # `docs/studies/ablations.{md,json}`. Each row is a separate training run (at the full
-# scale about an hour each on a 2-core CPU); trained rows are kept and reused, so the
-# table can be built over several sittings: `ESTHER_ABLATION_ROWS=no-plucker,no-cross-view`
-# trains and scores only those rows next to the full model (the report then says it is
-# a partial run).
+# scale about half an hour to an hour each on a 2-core CPU), so the table can be built
+# over several sittings: `ESTHER_ABLATION_ROWS=no-plucker,no-cross-view` trains and scores
+# only those rows next to the full model, and keeps the rows of the earlier report when
+# the full model, trained again, reproduces that report's full model
+# (`studies.earlier_rows`: each mean inside the other's interval); each row names the
+# revision it was trained at. Trained rows are also kept under the study root and reused.
 
 # %%
 import os
@@ -37,6 +39,7 @@ import esther_jax
 from esther_jax import model as M
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
+from esther_jax.files import git_revision
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
@@ -58,20 +61,25 @@ rows = ["esther", *(chosen or (["anchored-wrist"] if scale.name == "smoke" else 
 windows = studies.heldout_windows(scale, studies.dataset(scale, "heldout"))
 
 # %%
-results = {}
+scored = {}
 for row in rows:
-    results[row] = studies.condition_table(studies.trained(scale, row), windows, scale, {"clean": {}})["clean"]
-    print(f"{row:<36} MPJPE {results[row]['mpjpe_mm']:.1f} mm")
+    scored[row] = studies.condition_table(studies.trained(scale, row), windows, scale, {"clean": {}})["clean"]
+    print(f"{row:<36} MPJPE {scored[row]['mpjpe_mm']:.1f} mm")
+kept, trained_at = studies.earlier_rows(out, "ablations", scale, "esther", scored["esther"])
+trained_at |= dict.fromkeys(rows, git_revision())
+carried = [r for r in TABLE_ROWS if r in kept and r not in scored]
+results = {r: scored.get(r) or kept[r] for r in ["esther", *TABLE_ROWS] if r in scored or r in carried}
+print(f"kept from the earlier report: {', '.join(carried) or 'none'}")
 
 # %%
 full = results["esther"]
-table_rows = [{"variant": r, **v, "delta_mm": v["mpjpe_mm"] - full["mpjpe_mm"], "paper_mm": PAPER_MPJPE[r],
+table_rows = [{"variant": r, **v, "trained_at": (trained_at[r] or "unknown")[:7], "delta_mm": v["mpjpe_mm"] - full["mpjpe_mm"], "paper_mm": PAPER_MPJPE[r],
                "paper_delta_mm": PAPER_MPJPE[r] - PAPER_MPJPE["esther"],
                "separated": studies.separated(v["intervals"]["mpjpe_mm"], full["intervals"]["mpjpe_mm"]) if r != "esther" else None}
               for r, v in results.items()]  # fmt: skip
 summary = studies.table(table_rows, [("mpjpe_mm", "MPJPE mm"), ("delta_mm", "Δ vs full"), ("separated", "interval apart"),
                                      ("p_mpjpe_mm", "P-MPJPE mm"), ("wrist_mm", "wrist mm"), ("paper_mm", "paper MPJPE"),
-                                     ("paper_delta_mm", "paper Δ")], first="variant")  # fmt: skip
+                                     ("paper_delta_mm", "paper Δ"), ("trained_at", "trained at")], first="variant")  # fmt: skip
 print(summary)
 figures = [plot_metric_vs_condition(studies.records("cpu network", results), "mpjpe", list(results), out / "ablations_mpjpe.png", xlabel="variant")]
 
@@ -82,12 +90,14 @@ delta = lambda r: results[r]["mpjpe_mm"] - full["mpjpe_mm"]  # noqa: E731
 paper_delta = lambda r: PAPER_MPJPE[r] - PAPER_MPJPE["esther"]  # noqa: E731
 same_sign = [r for r in ranked if delta(r) * paper_delta(r) > 0]
 geometry_first = set(ranked[:2]) == {"no-plucker", "no-cross-view"}
-complete = len(rows) == len(PAPER_MPJPE)
+complete = len(results) == len(PAPER_MPJPE)
 damaging = [f"{r} ({delta(r):+.1f} mm)" for r in ranked if delta(r) > 0][:2]
 paper_damaging = [f"{r} ({paper_delta(r):+.1f} mm)" for r in paper_ranked if paper_delta(r) > 0][:2]
 verdict = (
     f"**{'Reproduces' if complete and geometry_first else 'Does not reproduce' if complete else 'Partial run'}.** "
-    f"{len(rows)} of {len(PAPER_MPJPE)} rows trained under one budget; the full model's MPJPE is {full['mpjpe_mm']:.1f} mm. "
+    f"{len(results)} of {len(PAPER_MPJPE)} rows trained under one budget"
+    f"{f' ({len(carried)} kept from an earlier sitting whose full model this one reproduces)' if carried else ''}; "
+    f"the full model's MPJPE is {full['mpjpe_mm']:.1f} mm. "
     f"{len(same_sign)} of {len(ranked)} ablations move MPJPE in the paper's direction. Most damaging here: "
     f"{', '.join(damaging) or 'none'} (paper, over the same rows: {', '.join(paper_damaging) or 'none'})."
 )
@@ -95,6 +105,6 @@ print(verdict)
 
 # %%
 studies.write_report(out, "ablations", title="Ablations (table 5)", verdict=verdict, scale=scale, seconds=time.perf_counter() - start,
-                     results={"rows": results, "paper_mpjpe_mm": PAPER_MPJPE, "ranked": ranked},
+                     results={"rows": results, "trained_at": {r: trained_at[r] for r in results}, "paper_mpjpe_mm": PAPER_MPJPE, "ranked": ranked},
                      sections=["## Results (absolute MPJPE, rig frame; mean [95% bootstrap interval] over held-out windows)", summary],
                      figures=figures)

@@ -109,18 +109,39 @@ def test_notebook_runs_at_smoke_scale(notebook, study_env):
     assert record["results"]
 
 
-def test_ablation_rows_are_chosen_by_name(study_env, monkeypatch):
-    """`ESTHER_ABLATION_ROWS` picks study 07's rows (the full model always scored), and a
-    misspelt row is refused by name before anything is trained or scored."""
+def test_ablation_rows_are_chosen_by_name_and_kept_across_sittings(study_env, monkeypatch, tmp_path):
+    """`ESTHER_ABLATION_ROWS` picks study 07's rows (the full model always scored), a
+    misspelt row is refused by name before anything is trained or scored, and a later
+    sitting keeps the earlier report's rows when its full model reproduces that one's."""
     notebook = next(p for p in NOTEBOOKS if p.stem == "07_ablations")
+    monkeypatch.setenv(studies.OUT_ENV, str(tmp_path))
     monkeypatch.setenv(studies.ABLATION_ROWS_ENV, "no-plucker,no-such-row")
     with pytest.raises(ValueError, match=r"unknown rows \['no-such-row'\]"):
         runpy.run_path(str(notebook), run_name="__main__")
+    monkeypatch.setenv(studies.ABLATION_ROWS_ENV, "anchored-wrist")
+    runpy.run_path(str(notebook), run_name="__main__")
+    assert list(_check_report(tmp_path, "ablations")["results"]["rows"]) == ["esther", "anchored-wrist"]
     monkeypatch.setenv(studies.ABLATION_ROWS_ENV, "no-flow-token")
     runpy.run_path(str(notebook), run_name="__main__")
-    record = _check_report(study_env, "ablations")
-    assert list(record["results"]["rows"]) == ["esther", "no-flow-token"]
+    record = _check_report(tmp_path, "ablations")
+    assert list(record["results"]["rows"]) == ["esther", "no-flow-token", "anchored-wrist"]  # table order
+    assert set(record["results"]["trained_at"]) == set(record["results"]["rows"])
+    assert "1 kept from an earlier sitting" in record["verdict"]
     assert f"{studies.ABLATION_ROWS_ENV}=no-flow-token" in record["command"]
+
+
+def test_earlier_rows_are_kept_only_when_the_reference_reproduces(tmp_path):
+    scale = studies.SCALES["smoke"]
+    row = lambda mm, lo, hi: {"mpjpe_mm": mm, "p_mpjpe_mm": mm, "wrist_mm": mm, "windows": 4,  # noqa: E731
+                              "intervals": {k: [lo, hi] for k in studies.REPRODUCED_KEYS}}  # fmt: skip
+    earlier = {"esther": row(10.0, 9.0, 11.0), "no-plucker": row(20.0, 18.0, 22.0)}
+    studies.write_report(tmp_path, "t", title="t", verdict="v", results={"rows": earlier}, scale=scale, seconds=1.0)
+    kept, trained_at = studies.earlier_rows(tmp_path, "t", scale, "esther", row(10.5, 9.6, 11.4))
+    assert kept == earlier and set(trained_at) == set(earlier)
+    assert studies.earlier_rows(tmp_path, "t", scale, "esther", row(11.5, 11.1, 12.0))[0] == {}  # 10.0 outside [11.1, 12.0]
+    assert studies.earlier_rows(tmp_path, "t", scale, "esther", {**row(10.0, 9.0, 11.0), "windows": 5})[0] == {}
+    assert studies.earlier_rows(tmp_path, "t", studies.SCALES["full"], "esther", row(10.0, 9.0, 11.0))[0] == {}
+    assert studies.earlier_rows(tmp_path, "missing", scale, "esther", row(10.0, 9.0, 11.0)) == ({}, {})
 
 
 def test_every_study_has_a_notebook():

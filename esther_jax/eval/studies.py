@@ -17,7 +17,9 @@ and reports. The notebooks under `notebooks/` are thin scripts over these functi
   random/systematic scatter, appendix-J bootstrap intervals over windows),
   `attention_shares` (its figure 7: cross-view attention into the kept view on the hand),
   `gate_stress_test` (appendix L), `condition_table` (a network under named conditions,
-  with intervals), `separated` (non-overlap of two bootstrap intervals).
+  with intervals), `separated` (non-overlap of two bootstrap intervals), `reproduces`
+  (a retrained network within the first one's intervals) and `earlier_rows` (the rows of
+  an earlier report kept when this run reproduces its reference row).
 - **Reports** (`write_report`): `<out>/<study>.json` (every number, the scale, the
   command, the wall time) and `<out>/<study>.md` (verdict paragraph first, then tables and
   figures), written atomically.
@@ -210,6 +212,48 @@ def separated(a: list[float] | None, b: list[float] | None) -> bool | None:
     if a is None or b is None or any(v is None or not np.isfinite(v) for v in (*a, *b)):
         return None
     return bool(a[1] < b[0] or b[1] < a[0])
+
+
+REPRODUCED_KEYS = ("mpjpe_mm", "p_mpjpe_mm", "wrist_mm")
+
+
+def reproduces(now: dict, earlier: dict, keys: tuple[str, ...] = REPRODUCED_KEYS) -> bool:
+    """Whether two `condition_table` entries, scorings of what should be the same network
+    on the same windows, agree: the same number of windows and, for every key, each one's
+    mean inside the other's 95% interval (a retrained network that lands within the
+    bootstrap noise of the first one)."""
+
+    def inside(x, span):
+        return x is not None and span is not None and None not in span and span[0] <= x <= span[1]
+
+    return now.get("windows") == earlier.get("windows") and all(
+        inside(now.get(k), (earlier.get("intervals") or {}).get(k)) and inside(earlier.get(k), (now.get("intervals") or {}).get(k)) for k in keys
+    )
+
+
+def earlier_rows(out: str | pathlib.Path, study: str, scale: StudyScale, reference: str, now: dict) -> tuple[dict[str, dict], dict[str, str | None]]:
+    """The rows of an earlier run of `study` (`<out>/<study>.json`, `results["rows"]`) that
+    this run may show next to its own, and the revision each was trained at
+    (`results["trained_at"]`, else that report's revision). Kept only when the earlier
+    report is of the same scale and its `reference` row is `reproduced` by this run's
+    (`now`): the same network trained again on the same data and budget lands where it
+    did, so rows trained then are comparable with rows trained now. Otherwise, or without
+    an earlier report, none (and a line says why). This is how a table of trainings of
+    an hour each is built over several sittings."""
+    path = pathlib.Path(out) / f"{study}.json"
+    if not path.is_file():
+        return {}, {}
+    record = json.loads(path.read_text())
+    rows = (record.get("results") or {}).get("rows") or {}
+    if record.get("scale") != dataclasses.asdict(scale) or reference not in rows:
+        print(f"{path}: of another scale or without a {reference!r} row; its rows are not kept")
+        return {}, {}
+    if not reproduces(now, rows[reference]):
+        print(f"{path}: its {reference!r} row (MPJPE {rows[reference].get('mpjpe_mm')} mm) is not reproduced by this run's "
+              f"({now.get('mpjpe_mm')} mm); its rows are not kept")  # fmt: skip
+        return {}, {}
+    trained_at = {r: (record["results"].get("trained_at") or {}).get(r, record.get("git_revision")) for r in rows}
+    return rows, trained_at
 
 
 # ----------------------------------------------------------------------------- size-depth binding
