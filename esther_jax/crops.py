@@ -13,7 +13,7 @@ import cv2
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ._math import cross, safe_normalize
 from .cameras import AbstractCamera, PinholeCamera
@@ -143,6 +143,61 @@ def rectified_crop(
         c = (size - 1) / 2
         return Crop(camera=PinholeCamera(focal, focal, c, c, size, size), R_cam_crop=R)
     raise ValueError(f"unknown rectification strategy {strategy!r}; choose one of {RECTIFICATION_STRATEGIES}")
+
+
+HAND_CROP_PADDING = 1.5
+"""The network's crops (synthetic and recorded alike): crop side = 1.5 x the hand box."""
+MIN_HAND_BOX_PX = 40.0
+"""`hand_box` never makes a box smaller than this (px): a far hand keeps some context."""
+
+
+def hand_box(uv: Float[np.ndarray, "n 2"], size_floor: float = MIN_HAND_BOX_PX) -> Float[np.ndarray, "4"]:
+    """The square box (x0, y0, x1, y1, px) of a hand's 2D keypoints: centred on their
+    extent, its side their longer extent (at least `size_floor`)."""
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    centre, half = 0.5 * (lo + hi), max(0.5 * float(np.max(hi - lo)), size_floor / 2)
+    return np.concatenate([centre - half, centre + half])
+
+
+def smooth_boxes(boxes: Float[np.ndarray, "T 4"]) -> Float[np.ndarray, "T 4"]:
+    """Boxes smoothed over time as a tracker's crop window would be (float32, as crops
+    files store them): a Gaussian of one frame's deviation (5 taps, edges reflected)
+    over each run of at least 5 frames with a box; frames without a box (NaN) stay NaN,
+    shorter runs as they are."""
+    boxes = np.asarray(boxes, np.float32)
+    out = boxes.copy()
+    finite = np.all(np.isfinite(boxes), axis=-1)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(np.int8), [0]])))
+    for start, stop in zip(edges[::2], edges[1::2]):
+        if stop - start >= 5:
+            out[start:stop] = cv2.GaussianBlur(boxes[start:stop, None], (1, 5), 1.0)[:, 0]
+    return out
+
+
+def hand_crop(
+    camera: AbstractCamera, box: Float[Array, "4"], strategy: str = "offbb120", size: int = DEFAULT_CROP_SIZE, padding: float = HAND_CROP_PADDING
+) -> Crop:
+    """The S x S crop of `strategy` (appendix M) around a hand box. On a pinhole camera
+    the offbb strategies are the axis-aligned crop (`crop_camera`): undistorting a
+    pinhole image to another pinhole is an affine map of its pixels, which leaves the
+    crop window's camera as it is, whatever the virtual focal; otherwise
+    `rectified_crop`."""
+    if isinstance(camera, PinholeCamera) and strategy != "hc":
+        return crop_camera(camera, box, size, padding)
+    return rectified_crop(camera, box, strategy, size, padding)
+
+
+def crop_coverage(camera: AbstractCamera, crop: Crop) -> Bool[np.ndarray, "S S"]:
+    """The crop pixels that come from inside the source image."""
+    axis_aligned = np.array_equal(np.asarray(crop.R_cam_crop), np.eye(3))
+    if isinstance(camera, PinholeCamera) and axis_aligned:  # the window's overlap with the image
+        S = crop.camera.width
+        scale = float(camera.fx) / float(crop.camera.fx)
+        u = (np.arange(S) - float(crop.camera.cx)) * scale + float(camera.cx)
+        v = (np.arange(S) - float(crop.camera.cy)) * scale + float(camera.cy)
+        return ((v[:, None] >= -0.5) & (v[:, None] < camera.height - 0.5)) & ((u[None] >= -0.5) & (u[None] < camera.width - 0.5))
+    source = np.asarray(rectification_map(camera, crop))
+    return (source[..., 0] >= -0.5) & (source[..., 0] < camera.width - 0.5) & (source[..., 1] >= -0.5) & (source[..., 1] < camera.height - 0.5)
 
 
 def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2"]:

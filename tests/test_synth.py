@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from esther_jax import cameras, cli, clips, mano, metrics
-from esther_jax.crops import crop_camera, crop_poses, rectified_crop
+from esther_jax.crops import HAND_CROP_PADDING, crop_camera, crop_poses, rectified_crop
 from esther_jax.data import detector, flow, motion, render, synth
 from esther_jax.rotations import axis_angle_to_matrix
 
@@ -292,7 +292,7 @@ def test_default_crop_strategy_is_offbb120_and_recorded(strategy_clips):
     side = next(iter(pinhole.crops))
     crops = pinhole.crops[side]
     for t, v in ((0, 0), (3, 1)):
-        expected = crop_camera(pinhole.rig.left if v == 0 else pinhole.rig.right, jnp.asarray(crops["box"][t, v]), 32, synth.CROP_PADDING)
+        expected = crop_camera(pinhole.rig.left if v == 0 else pinhole.rig.right, jnp.asarray(crops["box"][t, v]), 32, HAND_CROP_PADDING)
         np.testing.assert_allclose(crops["K"][t, v], np.asarray(expected.camera.K), rtol=1e-6)
         np.testing.assert_array_equal(crops["R_cam_crop"][t, v], np.eye(3))
     with pytest.raises(ValueError, match="unknown crop_strategy 'offbb100'"):
@@ -345,7 +345,7 @@ def test_flow_token_cancels_a_turning_crop_window():
     scene = render.sample_scene(np.random.default_rng(1))
     views = []
     for box in ([700, 450, 900, 650], [740, 470, 940, 670]):  # a static scene, the window moves
-        crop = rectified_crop(cam, jnp.asarray(box, jnp.float32), "hc", 224, synth.CROP_PADDING)
+        crop = rectified_crop(cam, jnp.asarray(box, jnp.float32), "hc", 224, HAND_CROP_PADDING)
         R = np.asarray(crop.R_cam_crop, np.float64)
         T_world_crop = np.eye(4)
         T_world_crop[:3, :3] = R

@@ -16,7 +16,6 @@ import tempfile
 import time
 import warnings
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,8 +27,6 @@ from ..files import check_out_dir, exclusive_lock, read_json, remove_stale_parti
 from . import detector, flow, motion, render
 
 CROP_SIZE = 224
-CROP_PADDING = 1.5
-"""Crop side relative to the hand's 2D extent (context for the network)."""
 ENGINE_REVISION = 2
 """Incremented when the engine makes other clips from the same settings and seed (motion,
 built-in hand, renderer); `synth.json` records it, and a record without it was made at
@@ -184,23 +181,6 @@ def _render_videos(clip: Clip, m: motion.ClipMotion, scene: render.Scene) -> Non
         clip.videos[view] = np.stack(frames)
 
 
-def _crop_box(uv: np.ndarray, size_floor: float = 40.0) -> np.ndarray:
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    centre, half = 0.5 * (lo + hi), max(0.5 * float(np.max(hi - lo)), size_floor / 2)
-    return np.concatenate([centre - half, centre + half])
-
-
-def _crop(camera, strategy: str, size: int, box: jax.Array) -> crop_lib.Crop:
-    """The S x S crop of `strategy` around a hand box (`SynthConfig.crop_strategy`).
-
-    On a pinhole camera the offbb strategies are the axis-aligned crop: undistorting a
-    pinhole image to another pinhole is an affine map of its pixels, which leaves the
-    crop window's camera as it is, whatever the virtual focal."""
-    if isinstance(camera, PinholeCamera) and strategy != "hc":
-        return crop_lib.crop_camera(camera, box, size, CROP_PADDING)
-    return crop_lib.rectified_crop(camera, box, strategy, size, CROP_PADDING)
-
-
 def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: SynthConfig, rng: np.random.Generator) -> None:
     """Hand-following S x S crops of both views, their intrinsics and the flow tokens.
 
@@ -220,10 +200,10 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
         valid = np.zeros((T, 2, S, S), bool)
         boxes = np.zeros((T, 2, 4), np.float32)
         for v, (camera, T_rig_cam, T_cam_rig) in enumerate(zip((rig.left, rig.right), T_rig_cams, T_cams_rig)):
-            raw = np.stack([_crop_box(uv[t, v]) for t in range(T)])
-            smooth = cv2.GaussianBlur(raw.astype(np.float32)[:, None], (1, 5), 1.0)[:, 0] if T >= 5 else raw
+            raw = np.stack([crop_lib.hand_box(uv[t, v]) for t in range(T)])
+            smooth = crop_lib.smooth_boxes(raw) if T >= 5 else raw  # (shorter clips: their float64 boxes, as engine revision 2 made them)
             smooth = smooth + rng.normal(scale=0.02, size=smooth.shape) * (smooth[:, 2:3] - smooth[:, 0:1])
-            make = functools.partial(_crop, camera, cfg.crop_strategy, S)
+            make = functools.partial(crop_lib.hand_crop, camera, strategy=cfg.crop_strategy, size=S)
             batch = jax.vmap(make)(jnp.asarray(smooth, jnp.result_type(float)))  # all frames at once
             fx, fy, cx, cy = (np.asarray(x, np.float64) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
             R_all = np.asarray(batch.R_cam_crop, np.float64)
@@ -237,25 +217,12 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
                 K[t, v] = [[fx[t], 0, cx[t]], [0, fy[t], cy[t]], [0, 0, 1]]
                 R[t, v] = R_all[t]
                 boxes[t, v] = smooth[t]
-                valid[t, v] = _inside_source(camera, crop)
+                valid[t, v] = crop_lib.crop_coverage(camera, crop)
         # The token's homography cancels the crop window's own motion. With projections
         # K R^T of source-camera rays (not K alone) it also cancels the window's rotation
         # (hc crops): P_t+1 P_t^-1 = K_t+1 R_t+1^T R_t K_t^-1. Axis-aligned crops have R = I.
         tokens = flow.clip_flow_tokens(images[:, 0], K[:, 0] @ np.swapaxes(R[:, 0], -1, -2), valid[:, 0])
         clip.crops[side] = {"images": images, "K": K, "R_cam_crop": R, "box": boxes, "flow": tokens}
-
-
-def _inside_source(camera, crop: crop_lib.Crop) -> np.ndarray:
-    """(S, S) crop pixels that come from inside the source image."""
-    axis_aligned = np.array_equal(np.asarray(crop.R_cam_crop), np.eye(3))
-    if isinstance(camera, PinholeCamera) and axis_aligned:  # the window's overlap with the image
-        S = crop.camera.width
-        scale = float(camera.fx) / float(crop.camera.fx)
-        u = (np.arange(S) - float(crop.camera.cx)) * scale + float(camera.cx)
-        v = (np.arange(S) - float(crop.camera.cy)) * scale + float(camera.cy)
-        return ((v[:, None] >= -0.5) & (v[:, None] < camera.height - 0.5)) & ((u[None] >= -0.5) & (u[None] < camera.width - 0.5))
-    source = np.asarray(crop_lib.rectification_map(camera, crop))
-    return (source[..., 0] >= -0.5) & (source[..., 0] < camera.width - 0.5) & (source[..., 1] >= -0.5) & (source[..., 1] < camera.height - 0.5)
 
 
 # ----------------------------------------------------------------------------- I/O
