@@ -72,6 +72,14 @@ def main(argv: list[str] | None = None) -> int:
     importer.add_argument("sources", nargs="+", help="per-sequence export folders (metadata.json, mano_hand_pose_trajectory.jsonl, ...) or clip tars")
     importer.add_argument("--out", required=True, help="output folder (one clip folder per source)")
     importer.add_argument("--mano", metavar="DIR", help="your MANO_RIGHT.pkl and MANO_LEFT.pkl: needed for gt.npz (HOT3D's ground truth is MANO)")
+    crops = commands.add_parser("crops", help="cut each hand's crops from clip folders' videos (esther train and predict read them)")
+    crops.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with video/left.mp4, video/right.mp4 and hands/")
+    crops.add_argument("--labels", metavar="DIR", help="the teacher's labels (esther label --out): crop around the labelled hands where valid "
+                                                       "(else around gt.npz's hands; else the detectors' keypoints)")  # fmt: skip
+    crops.add_argument("--size", type=int, default=224, help="crop side in pixels, the network config's (cpu-tiny 64, cpu-small 112, paper 224)")
+    crops.add_argument("--strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
+                       help="rectification of the crops (appendix M), as esther synth --crop-strategy")  # fmt: skip
+    crops.add_argument("--overwrite", action="store_true", help="replace crops made by esther synth or with other settings")
     label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
     label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
     label.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz, quality.json)")
@@ -119,8 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
     predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
     args = parser.parse_args(argv)
-    try:  # before minutes of work: the output folder (every command has one) must be a writable folder
-        check_out_dir(args.out)
+    try:  # before minutes of work: the output folder (every command but crops, which writes into its clips) must be a writable folder
+        if args.command != "crops":
+            check_out_dir(args.out)
     except ValueError as err:
         print(f"esther {args.command}: {err}", file=sys.stderr)
         return 2
@@ -137,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         return _detect(args)
     elif args.command == "import-hot3d":
         return _import_hot3d(args)
+    elif args.command == "crops":
+        return _crops(args)
     elif args.command == "synth":
         from .data.motion import MotionConfig
         from .data.synth import SynthConfig, synthesize
@@ -334,6 +345,25 @@ def _train(args) -> int:
         print(f"validation ({views}, {scores['windows']} windows): {shown}, on-screen F1 {scores['onscreen_f1']:.2f}")
     print(f"learning curves: {summary['curves']}")
     return 0
+
+
+def _crops(args) -> int:
+    from .data.video_crops import CropConfig, crop_clips
+
+    clip_dirs = _clip_folders(args.clips, "crops")
+    if clip_dirs is None:
+        return 2
+    try:
+        cfg = CropConfig(size=args.size, strategy=args.strategy)
+    except ValueError as err:
+        print(f"esther crops: {err}", file=sys.stderr)
+        return 2
+    result = crop_clips(clip_dirs, cfg, labels=args.labels, overwrite=args.overwrite)
+    for failure in result["failed"]:
+        print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+    hands = sum(len(r["hands"]) for r in result["cropped"])
+    print(f"cropped {hands} hands of {len(result['cropped'])} clips ({args.size} px, {args.strategy}), failed {len(result['failed'])}")
+    return 1 if result["failed"] else 0
 
 
 def _predict(args) -> int:

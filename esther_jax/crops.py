@@ -196,8 +196,13 @@ def crop_coverage(camera: AbstractCamera, crop: Crop) -> Bool[np.ndarray, "S S"]
         u = (np.arange(S) - float(crop.camera.cx)) * scale + float(camera.cx)
         v = (np.arange(S) - float(crop.camera.cy)) * scale + float(camera.cy)
         return ((v[:, None] >= -0.5) & (v[:, None] < camera.height - 0.5)) & ((u[None] >= -0.5) & (u[None] < camera.width - 0.5))
-    source = np.asarray(rectification_map(camera, crop))
-    return (source[..., 0] >= -0.5) & (source[..., 0] < camera.width - 0.5) & (source[..., 1] >= -0.5) & (source[..., 1] < camera.height - 0.5)
+    return table_coverage(np.asarray(rectification_map(camera, crop)), camera)
+
+
+def table_coverage(table: Float[np.ndarray, "S S 2"], camera: AbstractCamera) -> Bool[np.ndarray, "S S"]:
+    """The crop pixels whose source pixel (a `rectification_map` table) lies in the image."""
+    u, v = table[..., 0], table[..., 1]
+    return (u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5)
 
 
 def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2"]:
@@ -212,7 +217,12 @@ def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2
 
 def remap_crop(image: np.ndarray, camera: AbstractCamera, crop: Crop) -> np.ndarray:
     """Render a rectified crop from a source image (bilinear; black outside the image)."""
-    table = np.asarray(rectification_map(camera, crop), np.float32)
+    return remap_table(image, np.asarray(rectification_map(camera, crop), np.float32))
+
+
+def remap_table(image: np.ndarray, table: Float[np.ndarray, "S S 2"]) -> np.ndarray:
+    """Sample an image at a `rectification_map` table's source pixels (bilinear; black outside)."""
+    table = np.asarray(table, np.float32)
     return cv2.remap(image, table[..., 0], table[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 

@@ -1,0 +1,123 @@
+"""Crops of recorded clips (`esther crops`, `data.video_crops`): cut from a clip's
+videos, they must be the crops the synthetic engine renders directly (same crop camera,
+same pixels up to resampling), on a fisheye rig."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from esther_jax import cli, clips
+from esther_jax.cameras import StereoRig
+from esther_jax.crops import hand_box
+from esther_jax.data import motion, synth
+from esther_jax.data import video_crops as vc
+from esther_jax.train import data as train_data
+
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A fisheye (hot3d_aria) clip of 6 frames with its full views and its directly
+    rendered crops, in memory and as a clip folder."""
+    cfg = synth.SynthConfig(num_frames=6, rig="hot3d_aria", render=True, crop_size=SIZE, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    clip = synth.make_clip(0, 5, cfg)
+    return clip, synth.write_clip(clip, tmp_path_factory.mktemp("video_crops") / "clip")
+
+
+def _rgb(frames):
+    return np.repeat(np.asarray(frames)[..., None], 3, axis=-1) if np.asarray(frames).ndim == 3 else np.asarray(frames)
+
+
+def test_crops_cut_from_the_views_are_the_rendered_crops(rendered):
+    """Given the engine's crop windows, the crops cut from its full views have its crop
+    cameras exactly and its pixels up to resampling (the renderer draws crops directly)."""
+    clip, _ = rendered
+    frames = list(zip(_rgb(clip.videos["left"]), _rgb(clip.videos["right"])))
+    for side, ref in clip.crops.items():
+        cut = vc.render_crops(frames, clip.rig, ref["box"].astype(np.float64), vc.CropConfig(size=SIZE))
+        np.testing.assert_allclose(cut["K"], ref["K"], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(cut["R_cam_crop"], ref["R_cam_crop"], atol=1e-6)
+        for t, v in np.ndindex(6, 2):
+            # the renderer draws a crop's pixels beyond the source image too; cut ones are black there
+            inside = cut["images"][t, v, ..., 0] > 0
+            if inside.mean() > 0.5:
+                a, b = ref["images"][t, v][inside].astype(float), cut["images"][t, v, ..., 0][inside].astype(float)
+                assert np.corrcoef(a, b)[0, 1] > 0.9, (side, t, v)
+        assert np.abs(cut["flow"] - ref["flow"]).max() < 0.1
+
+
+def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
+    """The command cuts the crops around the projected ground truth, records how, skips a
+    clip already done, keeps esther synth's crops unless told, and the training loader
+    reads what it wrote."""
+    clip, folder = rendered
+    work = shutil.copytree(folder, tmp_path / "clip")
+    assert cli.main(["crops", str(work), "--size", str(SIZE)]) == 1  # esther synth's crops are kept
+    assert cli.main(["crops", str(work), "--size", str(SIZE), "--overwrite"]) == 0
+    record = json.loads((work / "meta.json").read_text())["crops"]
+    assert record["settings"]["size"] == SIZE and record["settings"]["strategy"] == "offbb120"
+    assert sorted(record["hands"]) == sorted(clip.crops)
+    for side, counts in record["hands"].items():
+        gt = clips.load_npz(clips.hand_file(work, side, "gt"), "gt")
+        cams = np.asarray(StereoRig.from_json(work / "rig.json").to_views(gt["joints"]))  # (2, T, 21, 3)
+        ahead = (cams[..., 2] > 1e-2).all(axis=-1) & gt["onscreen"]  # the frame-views the projected hand frames
+        assert counts["joints"] == int(ahead.sum()) > 0 and sum(counts.values()) == 12
+        cut = dict(np.load(work / "crops" / f"{side}.npz"))
+        assert cut["images"].shape == (6, 2, SIZE, SIZE, 3) and cut["flow"].shape == (6, 192)
+        # the ground-truth joints project inside their crops (the window follows the hand)
+        rays = np.einsum("tvji,vtnj->tvni", cut["R_cam_crop"], cams)  # R_cam_crop^T x: the crop camera's frame
+        uv = np.einsum("tvij,tvnj->tvni", cut["K"], rays / rays[..., 2:3])[..., :2]
+        inside = (cut["box"][..., :2] >= 0).all(axis=-1) & (cut["box"][..., 2:] < [640, 480]).all(axis=-1)  # boxes within the image
+        shown = inside & ahead.T
+        assert shown.any() and np.all((uv[shown] > -1) & (uv[shown] < SIZE))
+    stamp = (work / "crops" / "right.npz").stat().st_mtime_ns
+    assert cli.main(["crops", str(work), "--size", str(SIZE)]) == 0  # done: skipped
+    assert (work / "crops" / "right.npz").stat().st_mtime_ns == stamp
+    assert cli.main(["crops", str(work), "--size", "32"]) == 1  # other settings: kept unless --overwrite
+    windows = train_data.build_index([work], train_data.DataConfig(frames=4, stride=2, crop_size=SIZE))
+    example, targets = train_data.load_example(windows[0], train_data.DataConfig(frames=4, stride=2, crop_size=SIZE))
+    assert example.images.shape == (4, 2, 3, SIZE, SIZE) and np.all(np.isfinite(np.asarray(example.K)))
+
+
+def test_esther_crops_says_what_is_missing(rendered, tmp_path, capsys):
+    _, folder = rendered
+    work = shutil.copytree(folder, tmp_path / "clip")
+    (work / "video" / "left.mp4").unlink()
+    assert cli.main(["crops", str(work), "--size", str(SIZE), "--overwrite"]) == 1
+    assert "no video/left.mp4" in capsys.readouterr().err
+    assert cli.main(["crops", str(tmp_path / "nowhere")]) == 2
+
+
+def test_keypoint_boxes_gaps_and_absent_views():
+    """Boxes from detections: the median over the detectors that are confident, none with
+    too few joints; short gaps bridged, long ones not; a view without a box is black with
+    a NaN box and finite crop geometry."""
+    rng = np.random.default_rng(0)
+    T = 12
+    hand = 300 + rng.uniform(-40, 40, size=(T, 2, 21, 2))
+    uv = np.stack([hand, hand + 1.0, hand + 500.0])  # (D=3, T, 2, 21, 2): the third detector is wrong...
+    conf = np.ones((3, T, 2, 21))
+    conf[2] = 0.1  # ...and unconfident
+    conf[:, 3, 1] = 0.0  # frame 3: nobody sees the right view
+    conf[:, 5:, 1, :17] = 0.0  # frames 5+: 4 joints only in the right view
+    boxes = vc.keypoint_boxes({"uv": uv, "conf": conf}, vc.CropConfig(min_joints=5))
+    np.testing.assert_allclose(boxes[0, 0], hand_box(hand[0, 0] + 0.5), atol=1e-9)  # the median of the two confident detectors
+    assert np.isnan(boxes[3, 1]).all() and np.isnan(boxes[5:, 1]).all() and np.isfinite(boxes[:, 0]).all()
+    filled = vc.fill_gaps(boxes[:, 1], max_gap=1)
+    assert np.isfinite(filled[3]).all() and np.isnan(filled[5:]).all()
+    np.testing.assert_allclose(filled[3], (boxes[2, 1] + boxes[4, 1]) / 2)
+    assert np.isnan(vc.fill_gaps(boxes[:, 1], max_gap=0)[3]).all()
+
+    rig = synth.make_clip(0, 5, synth.SynthConfig(num_frames=2, rig="hot3d_aria")).rig
+    frame = np.full((rig.left.height, rig.left.width, 3), 200, np.uint8)
+    box = np.array([[[250.0, 200, 330, 280], [np.nan] * 4]] * 2)
+    cut = vc.render_crops([(frame, frame)] * 2, rig, box, vc.CropConfig(size=32))
+    assert cut["images"][:, 1].max() == 0 and np.isnan(cut["box"][:, 1]).all() and np.isfinite(cut["K"]).all()
+    assert cut["images"][:, 0].max() == 200
+    with pytest.raises(clips.ClipFormatError, match="1 frames; the clip has 2"):
+        vc.render_crops([(frame, frame)], rig, box, vc.CropConfig(size=32))
+    with pytest.raises(clips.ClipFormatError, match="the rig's camera is 640 x 480"):
+        vc.render_crops([(frame[:100], frame)] * 2, rig, box, vc.CropConfig(size=32))
