@@ -6,6 +6,8 @@
       hands/<side>/gt.npz                global_orient [T,3], hand_pose [T,15,3], betas [10], transl [T,3],
                                          joints [T,21,3], onscreen [T] (vertices [T,V,3] optional)
       video/left.mp4, video/right.mp4    optional frames (RGB; grey rigs as grey)
+      crops/<side>.npz                   optional hand crops: images [T,2,S,S(,3)] uint8, K [T,2,3,3], R_cam_crop [T,2,3,3],
+                                         box [T,2,4] (NaN: no crop), flow [T,F] (`load_crops`)
       hands/<side>/monocular.npz         optional per-view monocular MANO (e.g. WiLoR) in each camera's
                                          frame: global_orient [T,2,3], hand_pose [T,2,15,3], transl [T,2,3]
                                          (wrist position), valid [T,2]; the teacher starts from it
@@ -97,6 +99,47 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
     for key in ("onscreen", "valid"):
         if key in arrays:
             arrays[key] = arrays[key].astype(bool)
+    return arrays
+
+
+CROP_KEYS = ("images", "K", "R_cam_crop", "box", "flow")
+
+
+def crops_file(clip_dir: str | pathlib.Path, side: str) -> pathlib.Path:
+    """Path of a hand's crops inside a clip folder (`crops/<side>.npz`)."""
+    if side not in SIDES:
+        raise ValueError(f"side must be one of {SIDES}, got {side!r}")
+    return pathlib.Path(clip_dir) / "crops" / f"{side}.npz"
+
+
+def load_crops(path: str | pathlib.Path) -> dict[str, np.ndarray]:
+    """Load and validate a hand's crops file: images (T, 2, S, S[, 3]) uint8, K and
+    R_cam_crop (T, 2, 3, 3) finite, box (T, 2, 4) source pixels (NaN: no crop), flow
+    (T, F) finite."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ClipFormatError(f"{path} does not exist")
+    try:
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as err:
+        raise ClipFormatError(f"{path} is truncated, damaged or not an npz file ({type(err).__name__}: {err})") from err
+    missing = [k for k in CROP_KEYS if k not in arrays]
+    if missing:
+        raise ClipFormatError(f"{path}: keys {missing} are missing for a crops file (found {sorted(arrays)})")
+    images = arrays["images"]
+    square = images.ndim in (4, 5) and images.shape[1] == 2 and images.shape[2] == images.shape[3] and images.shape[4:] in ((), (3,))
+    if images.dtype != np.uint8 or not square:
+        raise ClipFormatError(f"{path}: images must be (T, 2, S, S[, 3]) uint8, got {images.shape} {images.dtype}")
+    T = images.shape[0]
+    for key, shape in (("K", (T, 2, 3, 3)), ("R_cam_crop", (T, 2, 3, 3)), ("box", (T, 2, 4))):
+        if arrays[key].shape != shape:
+            raise ClipFormatError(f"{path}: {key} has shape {arrays[key].shape}, expected {_format(shape)} (T = {T} frames of images)")
+    if arrays["flow"].ndim != 2 or arrays["flow"].shape[0] != T:
+        raise ClipFormatError(f"{path}: flow has shape {arrays['flow'].shape}, expected [{T}, F]")
+    for key in ("K", "R_cam_crop", "flow"):
+        if not np.all(np.isfinite(arrays[key])):
+            raise ClipFormatError(f"{path}: {key} contains NaN or infinite values")
     return arrays
 
 

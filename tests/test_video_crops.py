@@ -121,3 +121,24 @@ def test_keypoint_boxes_gaps_and_absent_views():
         vc.render_crops([(frame, frame)], rig, box, vc.CropConfig(size=32))
     with pytest.raises(clips.ClipFormatError, match="the rig's camera is 640 x 480"):
         vc.render_crops([(frame[:100], frame)] * 2, rig, box, vc.CropConfig(size=32))
+
+
+def test_crops_files_are_validated(rendered, tmp_path):
+    _, folder = rendered
+    good = clips.load_crops(clips.crops_file(folder, "right"))
+    assert set(good) == set(clips.CROP_KEYS)
+    path = tmp_path / "crops.npz"
+    for change, message in (
+        ({"K": good["K"][:-1]}, r"K has shape \(5, 2, 3, 3\), expected \[6, 2, 3, 3\]"),
+        ({"images": good["images"].astype(np.float32)}, "images must be"),
+        ({"flow": np.full_like(good["flow"], np.nan)}, "flow contains NaN"),
+    ):
+        clips.save_npz(path, **{**good, **change})
+        with pytest.raises(clips.ClipFormatError, match=message):
+            clips.load_crops(path)
+    clips.save_npz(path, **{k: v for k, v in good.items() if k != "box"})
+    with pytest.raises(clips.ClipFormatError, match=r"keys \['box'\] are missing"):
+        clips.load_crops(path)
+    path.write_bytes(clips.crops_file(folder, "right").read_bytes()[:1000])
+    with pytest.raises(clips.ClipFormatError, match="truncated"):
+        clips.load_crops(path)

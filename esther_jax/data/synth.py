@@ -249,7 +249,7 @@ def _write_clip_files(clip: Clip, tmp: pathlib.Path) -> None:
         clips.save_npz(clips.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
         clips.save_npz(clips.hand_file(tmp, side, "gt"), **clip.gt[side])
         if side in clip.crops:
-            clips.save_npz(tmp / "crops" / f"{side}.npz", **clip.crops[side])
+            clips.save_npz(clips.crops_file(tmp, side), **clip.crops[side])
     for view, frames in clip.videos.items():
         clips.write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
     clips.write_meta(tmp, **clip.meta)
@@ -271,13 +271,8 @@ def load_clip(folder: str | pathlib.Path, *, videos: bool = False) -> Clip:
         keypoints[side] = clips.load_npz(path, "keypoints")
         if clips.hand_file(folder, side, "gt").exists():
             gt[side] = clips.load_npz(clips.hand_file(folder, side, "gt"), "gt")
-        crop_path = folder / "crops" / f"{side}.npz"
-        if crop_path.exists():
-            try:
-                with open(crop_path, "rb") as f, np.load(f) as data:
-                    crop_data[side] = {k: data[k] for k in data.files}
-            except Exception as err:  # noqa: BLE001 (zip/EOF/OS errors: say which file)
-                raise clips.ClipFormatError(f"{crop_path} is truncated or not an npz file ({err})") from err
+        if clips.crops_file(folder, side).exists():
+            crop_data[side] = clips.load_crops(clips.crops_file(folder, side))
     if not keypoints:
         raise clips.ClipFormatError(f"{folder} has no hands/<side>/keypoints.npz")
     clip = Clip(rig=rig, meta=meta, keypoints=keypoints, gt=gt, crops=crop_data)

@@ -204,9 +204,9 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
     with exclusive_lock(clip_dir / ".crops.lock"):
         meta = clips.read_meta(clip_dir)
         done = meta.get("crops")
-        if done is not None and done.get("settings") == settings and all((clip_dir / "crops" / f"{s}.npz").is_file() for s in done["hands"]):
+        if done is not None and done.get("settings") == settings and all(clips.crops_file(clip_dir, s).is_file() for s in done["hands"]):
             return done
-        made_elsewhere = [s for s in clips.SIDES if (clip_dir / "crops" / f"{s}.npz").is_file()]
+        made_elsewhere = [s for s in clips.SIDES if clips.crops_file(clip_dir, s).is_file()]
         if made_elsewhere and not overwrite and (done is not None or "crop_strategy" in meta):
             raise ValueError(f"{clip_dir} has crops made {'with other settings' if done else 'by esther synth'}; pass overwrite to replace them")
         for view in ("left", "right"):
@@ -221,7 +221,7 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
             boxes, counts = hand_crop_boxes(clip_dir, side, rig, cfg, labels)
             if counts["none"] == boxes.shape[0] * 2:  # no evidence of this hand anywhere
                 continue
-            clips.save_npz(clip_dir / "crops" / f"{side}.npz", **render_crops(_frames(clip_dir), rig, boxes, cfg))
+            clips.save_npz(clips.crops_file(clip_dir, side), **render_crops(_frames(clip_dir), rig, boxes, cfg))
             hands[side] = counts
         record = {"settings": settings, "hands": hands}
         clips.write_meta(clip_dir, **{**clips.read_meta(clip_dir), "crops": record})

@@ -41,12 +41,7 @@ def _views_present(rig: StereoRig, box: np.ndarray) -> np.ndarray:
 
 def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig) -> dict[str, np.ndarray]:
     """One hand of one clip folder, every frame, as labels arrays."""
-    path = clip_dir / "crops" / f"{side}.npz"
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            crops = {k: data[k] for k in ("images", "K", "R_cam_crop", "flow", "box")}
-    except (OSError, ValueError, KeyError) as err:
-        raise clips.ClipFormatError(f"{path} is not a crops file (images, K, R_cam_crop, flow, box): {err}") from err
+    crops = clips.load_crops(clips.crops_file(clip_dir, side))
     cfg = net.config
     T = crops["images"].shape[0]
     present = _views_present(rig, np.asarray(crops["box"], np.float64))
@@ -89,7 +84,7 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
         try:
             meta = clips.read_meta(clip)
             rig = StereoRig.from_json(clip / "rig.json")
-            sides = [s for s in clips.SIDES if (clip / "crops" / f"{s}.npz").is_file()]
+            sides = [s for s in clips.SIDES if clips.crops_file(clip, s).is_file()]
             if not sides:
                 raise clips.ClipFormatError(f"{clip} has no crops/<side>.npz (esther synth --crops, or your crops)")
             with exclusive_lock(out_dir / f".{clip.name}.lock"):

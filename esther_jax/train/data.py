@@ -84,7 +84,7 @@ def build_index(clip_dirs: list[str | pathlib.Path], cfg: DataConfig) -> list[Wi
     for clip in sorted(pathlib.Path(c) for c in clip_dirs):
         frames = int(clips.read_meta(clip)["num_frames"])
         for side in clips.SIDES:
-            if not (clip / "crops" / f"{side}.npz").is_file() or not _target_file(clip, side, cfg).is_file():
+            if not clips.crops_file(clip, side).is_file() or not _target_file(clip, side, cfg).is_file():
                 continue
             windows += [Window(str(clip), side, start) for start in range(0, frames - cfg.frames + 1, cfg.stride)]
     return windows
@@ -134,12 +134,7 @@ def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
 def _clip_arrays(clip: str, side: str, crop_size: int, target_file: str):
     """A hand's whole crops (resized), rig and targets, read once per process."""
     folder = pathlib.Path(clip)
-    path = folder / "crops" / f"{side}.npz"
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            crops = {k: data[k] for k in ("images", "K", "R_cam_crop", "flow")}
-    except (OSError, ValueError, KeyError) as err:
-        raise clips.ClipFormatError(f"{path} is not a crops file (images, K, R_cam_crop, flow): {err}") from err
+    crops = clips.load_crops(clips.crops_file(folder, side))
     images, K = resize_crops(crops["images"], crops["K"], crop_size)
     if images.ndim == 4:  # grey rigs: replicate to RGB
         images = np.repeat(images[..., None], 3, axis=-1)

@@ -75,7 +75,7 @@ def precompute_features(
                 raise ValueError(f"{out} caches the features of another backbone or crop size ({previous}); use another folder")
         else:
             write_json(out / RECORD, record)
-    hands = [(pathlib.Path(c), s) for c in clip_dirs for s in clips.SIDES if (pathlib.Path(c) / "crops" / f"{s}.npz").is_file()]
+    hands = [(pathlib.Path(c), s) for c in clip_dirs for s in clips.SIDES if clips.crops_file(c, s).is_file()]
     for clip, side in tqdm(hands, desc="features", unit="hand", disable=not progress):
         target = feature_file(out, clip, side)
         if target.exists():
@@ -84,8 +84,7 @@ def precompute_features(
         with exclusive_lock(target.parent / f".{side}.lock"):
             if target.exists():  # another process made it meanwhile
                 continue
-            with np.load(clip / "crops" / f"{side}.npz", allow_pickle=False) as data:
-                crops = {k: data[k] for k in ("images", "K", "R_cam_crop", "flow")}
+            crops = clips.load_crops(clips.crops_file(clip, side))
             rig = StereoRig.from_json(clip / "rig.json")
             example = clip_input_from_crops(crops, rig.T_rig_cams, size=crop_size)
             features = np.asarray(_features(backbone, example, side == "left"))
