@@ -6,6 +6,7 @@
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4]
                                      [--set backbone=conv-small ...]
     python benchmarks/train.py probe --model RUN/stage2/model --data DIR
+    python benchmarks/train.py loader [--data DIR] [--clips 40] [--batch 8] [--steps 40]
 
 `steps`: the jitted training step (corruption, forward, appendix-B losses, gradient,
 AdamW update) per config, float32 and bfloat16 compute (`paper` on precomputed features
@@ -55,6 +56,15 @@ network's wrist does not carry it (0.21, 70 mm); the global orientation is only 
 F (26 degrees against the constant's 36; the network's 31).
 
     python benchmarks/train.py probe --model RUN/stage2/model --data DIR [--ridge 0.01]
+
+`loader`: the training loader (`train.load_batch`: the batch of a step, read on the
+loop's worker thread while the previous step runs) on the same clips with their crops
+files compressed (as written before crops files were stored uncompressed) and stored
+(`clips.save_crops`, memory-mapped: a window reads its own frames), side by side in one
+run: the median seconds per batch of `--batch` random windows over more clip-sides than
+the loader's cache keeps, and the same for clips 8x as long (the crops tiled in time, as
+a recorded clip's are long). The clips: `--data` (clip folders with crops and gt.npz) or
+`--clips` synthetic clips of 64 frames with 112 px crops made in a temporary folder.
 """
 
 import argparse
@@ -350,6 +360,63 @@ def probe(model: str, data: str, strength: float) -> None:
         print(f"{name:<32} {' / '.join('    -' if np.isnan(c) else f'{c:5.2f}' for c in corr):>22} {' / '.join(f'{e:6.1f}' for e in mae):>24} {deg}")
 
 
+def _crops_copies(clip_dirs: list, root: str, tile: int) -> dict[str, list]:
+    """Copies of the clips whose crops files are compressed or stored (the rest linked),
+    their crops and targets tiled `tile` times in time."""
+    import json
+    import pathlib
+
+    from esther_jax import clips as clip_format
+
+    out = {"compressed": [], "stored": []}
+    for clip in map(pathlib.Path, clip_dirs):
+        meta = clip_format.read_meta(clip)
+        for kind, save in (("compressed", clip_format.save_npz), ("stored", clip_format.save_crops)):
+            copy = pathlib.Path(root) / f"{kind}_x{tile}" / clip.name
+            (copy / "hands").mkdir(parents=True, exist_ok=True)
+            os.symlink(clip / "rig.json", copy / "rig.json")
+            (copy / "meta.json").write_text(json.dumps({**meta, "num_frames": meta["num_frames"] * tile}))
+            for side in clip_format.SIDES:
+                if not clip_format.crops_file(clip, side).is_file():
+                    continue
+                crops = clip_format.load_crops(clip_format.crops_file(clip, side))
+                save(clip_format.crops_file(copy, side), **{k: np.concatenate([v] * tile) for k, v in crops.items()})
+                gt = clip_format.load_npz(clip_format.hand_file(clip, side, "gt"), "gt")
+                clip_format.save_npz(clip_format.hand_file(copy, side, "gt"), **{k: v if k == "betas" else np.concatenate([v] * tile) for k, v in gt.items()})
+            out[kind].append(str(copy))
+    return out
+
+
+def bench_loader(data: str | None, num_clips: int, batch: int, steps: int) -> None:
+    from esther_jax import clips as clip_format
+
+    root = tempfile.mkdtemp(prefix="esther_bench_loader_")
+    if data is None:
+        print(f"making {num_clips} synthetic clips of 64 frames with 112 px crops ...", flush=True)
+        cfg = synth.SynthConfig(num_frames=64, crops=True, crop_size=112, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+        synth.synthesize(os.path.join(root, "clips"), num_clips, cfg, seed=0, progress=False)
+        data = os.path.join(root, "clips")
+    clip_dirs = clip_format.list_clips(data)[:num_clips]
+    data_cfg = train.DataConfig(frames=16, stride=8, crop_size=112)
+    print(f"{len(clip_dirs)} clips; batches of {batch} random 16-frame windows, {steps} steps after 2 of warm-up (median s / batch)")
+    print(f"{'clip length':<12} {'crops file':<11} {'windows':>8} {'s / batch':>10} {'windows/s':>10}")
+    for tile in (1, 8):
+        copies = _crops_copies(clip_dirs, root, tile)
+        for kind, dirs in copies.items():
+            windows = train.build_index(dirs, data_cfg)
+            for path in (p for d in dirs for p in (clip_format.crops_file(d, "left"), clip_format.crops_file(d, "right")) if p.is_file()):
+                path.read_bytes()  # both kinds from the page cache, as in a long run
+            for step in range(2):
+                train.load_batch(windows, data_cfg, batch, seed=1, step=step)
+            times = []
+            for step in range(2, 2 + steps):
+                t0 = time.perf_counter()
+                train.load_batch(windows, data_cfg, batch, seed=1, step=step)
+                times.append(time.perf_counter() - t0)
+            sec = float(np.median(times))
+            print(f"{64 * tile:<12} {kind:<11} {len(windows):>8} {sec:>10.3f} {batch / sec:>10.1f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -377,6 +444,11 @@ def main() -> None:
     pp.add_argument("--model", required=True, help="a saved network (a run's model folder)")
     pp.add_argument("--data", required=True, help="folder of clips with ground truth (held-out clips)")
     pp.add_argument("--ridge", type=float, default=0.01, help="ridge penalty per fitted frame (inputs standardised)")
+    ld = sub.add_parser("loader")
+    ld.add_argument("--data", help="clip folders with crops and gt.npz (default: synthetic clips made here)")
+    ld.add_argument("--clips", type=int, default=40)
+    ld.add_argument("--batch", type=int, default=8)
+    ld.add_argument("--steps", type=int, default=40)
     args = parser.parse_args()
     from esther_jax import enable_compilation_cache
 
@@ -387,6 +459,8 @@ def main() -> None:
         overfit(args.config, args.stage, args.steps, args.batch)
     elif args.what == "probe":
         probe(args.model, args.data, args.ridge)
+    elif args.what == "loader":
+        bench_loader(args.data, args.clips, args.batch, args.steps)
     else:
         learn(args)
 

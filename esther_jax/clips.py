@@ -112,16 +112,46 @@ def crops_file(clip_dir: str | pathlib.Path, side: str) -> pathlib.Path:
     return pathlib.Path(clip_dir) / "crops" / f"{side}.npz"
 
 
-def load_crops(path: str | pathlib.Path) -> dict[str, np.ndarray]:
+def save_crops(path: str | pathlib.Path, **arrays) -> pathlib.Path:
+    """Write a hand's crops file atomically, uncompressed (pixels barely compress, and a
+    stored array can be memory-mapped: `load_crops(mmap=True)` reads only the frames used)."""
+    path = pathlib.Path(path)
+    with atomic_output(path) as tmp:
+        np.savez(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
+    return path
+
+
+def _mapped_member(path: pathlib.Path, name: str) -> np.memmap | None:
+    """The array `name` of an npz file memory-mapped, when it is stored uncompressed; None
+    when it is compressed (read it whole)."""
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(f"{name}.npy")
+    if info.compress_type != zipfile.ZIP_STORED:
+        return None
+    with open(path, "rb") as f:
+        f.seek(info.header_offset + 26)  # the local file header: name and extra-field lengths at bytes 26-29
+        name_len, extra_len = np.frombuffer(f.read(4), "<u2")
+        f.seek(info.header_offset + 30 + int(name_len) + int(extra_len))
+        version = np.lib.format.read_magic(f)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(f)
+        offset = f.tell()
+    return np.memmap(path, dtype, "r", offset, shape, "F" if fortran else "C")
+
+
+def load_crops(path: str | pathlib.Path, *, mmap: bool = False) -> dict[str, np.ndarray]:
     """Load and validate a hand's crops file: images (T, 2, S, S[, 3]) uint8, K and
     R_cam_crop (T, 2, 3, 3) finite, box (T, 2, 4) source pixels (NaN: no crop), flow
-    (T, F) finite."""
+    (T, F) finite. With `mmap`, images written by `save_crops` are memory-mapped (read
+    from disk as frames are used; compressed files, e.g. of earlier versions, are read
+    whole)."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise ClipFormatError(f"{path} does not exist")
     try:
         with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
+            mapped = _mapped_member(path, "images") if mmap and "images" in data.files else None
+            arrays = {k: mapped if k == "images" and mapped is not None else data[k] for k in data.files}
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as err:
         raise ClipFormatError(f"{path} is truncated, damaged or not an npz file ({type(err).__name__}: {err})") from err
     missing = [k for k in CROP_KEYS if k not in arrays]

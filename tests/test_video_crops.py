@@ -5,6 +5,7 @@ same pixels up to resampling), on a fisheye rig."""
 import json
 import shutil
 
+import jax
 import numpy as np
 import pytest
 
@@ -142,3 +143,19 @@ def test_crops_files_are_validated(rendered, tmp_path):
     path.write_bytes(clips.crops_file(folder, "right").read_bytes()[:1000])
     with pytest.raises(clips.ClipFormatError, match="truncated"):
         clips.load_crops(path)
+
+
+def test_stored_crops_are_memory_mapped_and_load_as_compressed_ones(rendered, tmp_path):
+    """Crops files are written uncompressed and memory-mapped by the training loader (a
+    window reads its frames only); compressed files of earlier versions load the same."""
+    _, folder = rendered
+    stored = clips.load_crops(clips.crops_file(folder, "right"), mmap=True)
+    assert isinstance(stored["images"], np.memmap)
+    old = shutil.copytree(folder, tmp_path / "compressed")
+    clips.save_npz(clips.crops_file(old, "right"), **clips.load_crops(clips.crops_file(folder, "right")))
+    assert not isinstance(clips.load_crops(clips.crops_file(old, "right"), mmap=True)["images"], np.memmap)
+    cfg = train_data.DataConfig(frames=4, stride=2, crop_size=32)  # resized on the way (stored at 64)
+    for a, b in zip(train_data.build_index([folder], cfg), train_data.build_index([old], cfg)):
+        if a.side == "right":
+            for x, y in zip(jax.tree.leaves(train_data.load_example(a, cfg)), jax.tree.leaves(train_data.load_example(b, cfg))):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

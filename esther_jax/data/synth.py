@@ -249,7 +249,7 @@ def _write_clip_files(clip: Clip, tmp: pathlib.Path) -> None:
         clips.save_npz(clips.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
         clips.save_npz(clips.hand_file(tmp, side, "gt"), **clip.gt[side])
         if side in clip.crops:
-            clips.save_npz(clips.crops_file(tmp, side), **clip.crops[side])
+            clips.save_crops(clips.crops_file(tmp, side), **clip.crops[side])
     for view, frames in clip.videos.items():
         clips.write_video(tmp / "video" / f"{view}.mp4", frames, clip.meta["fps"])
     clips.write_meta(tmp, **clip.meta)

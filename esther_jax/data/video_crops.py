@@ -221,7 +221,7 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
             boxes, counts = hand_crop_boxes(clip_dir, side, rig, cfg, labels)
             if counts["none"] == boxes.shape[0] * 2:  # no evidence of this hand anywhere
                 continue
-            clips.save_npz(clips.crops_file(clip_dir, side), **render_crops(_frames(clip_dir), rig, boxes, cfg))
+            clips.save_crops(clips.crops_file(clip_dir, side), **render_crops(_frames(clip_dir), rig, boxes, cfg))
             hands[side] = counts
         record = {"settings": settings, "hands": hands}
         clips.write_meta(clip_dir, **{**clips.read_meta(clip_dir), "crops": record})

@@ -7,8 +7,10 @@ example per window as arrays, and the batch of a step as a pure function of
   (`crops/<side>.npz`) and a target: the exact ground truth (`gt.npz`, frames on screen)
   or the teacher's labels (`<labels>/<clip>/hands/<side>/labels.npz`, frames `valid`:
   the pseudo-labels the paper trains on). The index is saved once (`save_index`).
-- `load_example` reads a window: the crops resized to the network's crop size with their
-  intrinsics (`crops.resize_crops`), the flow tokens, the rig, the targets. A view in
+- `load_example` reads a window: its frames of the crops (memory-mapped from files that
+  `clips.save_crops` wrote, so a window of a long recorded clip reads 16 frames, not the
+  clip), resized to the network's crop size with their intrinsics (`crops.resize_crops`),
+  the flow tokens, the rig, the targets. A view in
   which no joint of the hand projects into the image in front of the camera is absent
   (`view_present` False, pixels zero): it never reaches the encoder as a real view.
   Left hands are mirrored into right hands (`model.mirror_clip`), their targets with
@@ -131,26 +133,25 @@ def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
 
 
 @functools.lru_cache(maxsize=64)
-def _clip_arrays(clip: str, side: str, crop_size: int, target_file: str):
-    """A hand's whole crops (resized), rig and targets, read once per process."""
+def _clip_arrays(clip: str, side: str, target_file: str):
+    """A hand's crops (images memory-mapped where the file allows: `clips.load_crops`),
+    rig and targets, read once per process."""
     folder = pathlib.Path(clip)
-    crops = clips.load_crops(clips.crops_file(folder, side))
-    images, K = resize_crops(crops["images"], crops["K"], crop_size)
-    if images.ndim == 4:  # grey rigs: replicate to RGB
-        images = np.repeat(images[..., None], 3, axis=-1)
+    crops = clips.load_crops(clips.crops_file(folder, side), mmap=True)
     kind = "gt" if target_file.endswith("gt.npz") else "labels"
     target = clips.load_npz(target_file, kind)
     rig = StereoRig.from_json(folder / "rig.json")
-    return images, K, crops["R_cam_crop"], crops["flow"], rig, target, kind
+    return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], rig, target, kind
 
 
 def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
     """One window as the network's input and its targets (a right hand: left hands mirrored)."""
     clip = pathlib.Path(window.clip)
-    images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, cfg.crop_size, str(_target_file(clip, window.side, cfg)))
+    images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, str(_target_file(clip, window.side, cfg)))
     sl = slice(window.start, window.start + cfg.frames)
     if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
         raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
+    K = K[sl]
     dtype = np.dtype(jnp.result_type(float))
     if cfg.features:
         cached = np.load(feature_file(cfg.features, clip, window.side), mmap_mode="r")
@@ -158,11 +159,12 @@ def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
             raise clips.ClipFormatError(f"{feature_file(cfg.features, clip, window.side)} has {cached.shape[0]} frames; "
                                         f"the crops have {images.shape[0]}: rebuild the feature cache")  # fmt: skip
         visual = {"features": np.asarray(cached[sl])}
-    else:
-        visual = {"pixels": images[sl]}
+    else:  # only the window's frames are read (and resized)
+        pixels, K = resize_crops(np.asarray(images[sl]), K, cfg.crop_size)
+        visual = {"pixels": pixels if pixels.ndim == 5 else np.repeat(pixels[..., None], 3, axis=-1)}  # grey rigs: RGB
     arrays = {
         **visual,
-        "K": K[sl].astype(dtype),
+        "K": K.astype(dtype),
         "R_cam_crop": R_cam_crop[sl].astype(dtype),
         "flow": flow[sl].astype(dtype),
         "global_orient": target["global_orient"][sl].astype(dtype),
