@@ -461,6 +461,20 @@ def test_validation_scores_known_errors(synth_clip):
     assert float(jnp.abs(blanked.images[~kept]).max()) == 0.0 and np.array_equal(np.asarray(mask[:, 0]), ~np.asarray(kept))
 
 
+def test_predict_hand_is_the_same_window_batch_by_batch(synth_clip):
+    """`esther predict` predicts a clip's windows a batch at a time (the last batch padded):
+    the labels do not depend on the batch."""
+    from esther_jax.cameras import StereoRig
+    from esther_jax.model.folders import predict_hand
+
+    net = M.ESTHER(M.config("cpu-tiny", num_frames=3), key=jax.random.key(0))  # windows at 0, 3, 5 of 8 frames
+    rig = StereoRig.from_json(synth_clip / "rig.json")
+    one, two = (predict_hand(net, synth_clip, "left", rig, batch=b) for b in (1, 2))
+    assert one["joints"].shape == (8, 21, 3)
+    for key in one:
+        np.testing.assert_allclose(one[key], two[key], atol=1e-5, err_msg=key)
+
+
 def test_robustness_conditions_run_through_the_network(synth_clip):
     """evaluate_windows under dropped frames plus a corruption, with bootstrap intervals
     (the conditions of the paper's tables 4 and 6)."""

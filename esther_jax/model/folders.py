@@ -2,7 +2,8 @@
 
 For each clip and hand with crops (`crops/<side>.npz`), the clip is cut into windows of
 the network's `num_frames` (the last one shifted back to end at the last frame; a
-shorter clip is one window), each window is predicted (`predict`: left hands mirrored
+shorter clip is one window), each window is predicted (`predict`, `PREDICT_BATCH` windows
+at a time from the memory-mapped crops: left hands mirrored
 and un-mirrored, the on-screen gate applied), and every frame takes the prediction of
 the first window that covers it. A view whose crop box lies wholly outside its image is
 absent. The output, `<out>/<clip>/hands/<side>/labels.npz`, has the keys of the
@@ -39,18 +40,35 @@ def _views_present(rig: StereoRig, box: np.ndarray) -> np.ndarray:
     return np.all((hi > -0.5) & (lo < size - 0.5) & (hi > lo), axis=-1) & np.all(np.isfinite(box), axis=-1)
 
 
-def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig) -> dict[str, np.ndarray]:
-    """One hand of one clip folder, every frame, as labels arrays."""
-    crops = clips.load_crops(clips.crops_file(clip_dir, side))
+PREDICT_BATCH = 8
+"""Windows predicted at once (memory: the windows' crops as float32 on the device)."""
+
+
+def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig, *, batch: int = PREDICT_BATCH) -> dict[str, np.ndarray]:
+    """One hand of one clip folder, every frame, as labels arrays. The windows are
+    predicted `batch` at a time from the memory-mapped crops, so a long recorded clip
+    never holds more than a batch of windows in memory."""
+    crops = clips.load_crops(clips.crops_file(clip_dir, side), mmap=True)
     cfg = net.config
     T = crops["images"].shape[0]
     present = _views_present(rig, np.asarray(crops["box"], np.float64))
-    crops["images"] = np.where(present.reshape(present.shape + (1,) * (crops["images"].ndim - 2)), crops["images"], 0)
     W = min(cfg.num_frames, T)
     starts = _window_starts(T, W)
-    windows = [clip_input_from_crops(crops, rig.T_rig_cams, present, size=cfg.crop_size, frames=slice(s, s + W)) for s in starts]
-    batch = jax.tree.map(lambda *x: jnp.stack(x), *windows)
-    out = jax.device_get(predict(net, batch, mano.load_builtin("right"), is_right=side == "right"))
+    batch = min(batch, len(starts))  # short clips: no padding beyond their windows
+    hand = mano.load_builtin("right")
+    parts = []
+    for lo in range(0, len(starts), batch):
+        group = starts[lo : lo + batch]
+        windows = []
+        for s in group + [group[-1]] * (batch - len(group)):  # the last batch padded: one compiled shape
+            sl = slice(s, s + W)
+            images = np.asarray(crops["images"][sl])
+            seen = present[sl].reshape(present[sl].shape + (1,) * (images.ndim - 2))
+            window = {"images": np.where(seen, images, 0), "K": crops["K"][sl], "R_cam_crop": crops["R_cam_crop"][sl], "flow": crops["flow"][sl]}
+            windows.append(clip_input_from_crops(window, rig.T_rig_cams, present[sl], size=cfg.crop_size))
+        out = jax.device_get(predict(net, jax.tree.map(lambda *x: jnp.stack(x), *windows), hand, is_right=side == "right"))
+        parts.append(jax.tree.map(lambda a: np.asarray(a)[: len(group)], out))
+    out = jax.tree.map(lambda *x: np.concatenate(x), *parts)
     owner = np.full(T, -1)
     for i, s in reversed(list(enumerate(starts))):
         owner[s : s + W] = i  # the first window covering a frame wins
@@ -108,4 +126,4 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
     return {"predicted": done, "failed": failed, "out": str(out_dir)}
 
 
-__all__ = ["predict_folders", "predict_hand"]
+__all__ = ["PREDICT_BATCH", "predict_folders", "predict_hand"]
