@@ -125,6 +125,17 @@ def test_evaluate_folders_end_to_end(tmp_path):
     assert "P-MPJPE" in (tmp_path / "out" / "table.md").read_text()
 
 
+def test_evaluate_a_prediction_that_emits_nothing(tmp_path, capsys):
+    """An untrained network's gate may emit no frame: the evaluation says so (coverage 0,
+    no data) instead of failing inside a plot."""
+    pred = _write_clip(tmp_path / "gt", "clip", np.random.default_rng(3))
+    clips.save_npz(clips.hand_file(tmp_path / "pred" / "clip", "right", "labels"), **{**pred, "valid": np.zeros_like(pred["valid"])})
+    assert cli.main(["evaluate", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"), "--out", str(tmp_path / "o")]) == 0
+    result = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert result["coverage"] == 0.0 and result["metrics"]["wrist"]["value"] is None
+    assert "no data" in capsys.readouterr().out and (tmp_path / "o" / "depth_scatter.png").is_file()
+
+
 def test_evaluate_reports_bad_inputs(tmp_path, capsys):
     rng = np.random.default_rng(2)
     pred = _write_clip(tmp_path / "gt", "clip", rng)

@@ -97,9 +97,16 @@ def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthSca
     `metrics.depth_scatter`) per model, on shared axes."""
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
     everything = np.concatenate([np.concatenate([np.ravel(z_gt), np.ravel(z_pred)]) for _, z_gt, z_pred, _ in panels])
-    lo, hi = float(np.nanmin(everything)), float(np.nanmax(everything))
+    everything = everything[np.isfinite(everything)]
+    lo, hi = (float(everything.min()), float(everything.max())) if everything.size else (0.0, 1.0)
     pad = 0.05 * max(hi - lo, 1e-3)
     for ax, (title, z_gt, z_pred, scatter) in zip(axes[0], panels):
+        ax.set_xlim(lo - pad, hi + pad)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set_aspect("equal", adjustable="box")
+        if not np.isfinite(np.asarray(z_gt, float)).any():  # nothing scored (e.g. a prediction that emits no frame)
+            ax.set_title(f"{title}\nno frame scored", fontsize=9)
+            continue
         ax.scatter(z_gt, z_pred, s=3, alpha=0.35, color="#2b6cb0", linewidths=0)
         xs = np.linspace(float(np.nanmin(z_gt)), float(np.nanmax(z_gt)), 2)
         ax.plot(xs, xs, "k--", lw=0.8, label="ideal")
@@ -111,9 +118,6 @@ def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthSca
             fontsize=9,
         )
         ax.legend(fontsize=8, loc="upper left")
-        ax.set_xlim(lo - pad, hi + pad)
-        ax.set_ylim(lo - pad, hi + pad)
-        ax.set_aspect("equal", adjustable="box")
     axes[0][0].set_ylabel("predicted wrist depth (m)")
     return _save(fig, pathlib.Path(path))
 
