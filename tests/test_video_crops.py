@@ -89,6 +89,11 @@ def test_esther_crops_says_what_is_missing(rendered, tmp_path, capsys):
     (work / "video" / "left.mp4").unlink()
     assert cli.main(["crops", str(work), "--size", str(SIZE), "--overwrite"]) == 1
     assert "no video/left.mp4" in capsys.readouterr().err
+    short = shutil.copytree(folder, tmp_path / "short")
+    gt = clips.load_npz(clips.hand_file(short, "right", "gt"), "gt")
+    clips.save_npz(clips.hand_file(short, "right", "gt"), **{k: v if k == "betas" else v[:3] for k, v in gt.items()})
+    assert cli.main(["crops", str(short), "--size", str(SIZE), "--overwrite"]) == 1
+    assert "gt.npz has 3 frames; the clip has 6" in capsys.readouterr().err
     assert cli.main(["crops", str(tmp_path / "nowhere")]) == 2
 
 

@@ -65,7 +65,7 @@ def joint_boxes(rig: StereoRig, joints: Float[np.ndarray, "T 21 3"], valid: np.n
     the view; NaN where the frame is not `valid` or a joint is not in front of the camera."""
     joints = jnp.asarray(np.nan_to_num(np.asarray(joints, np.float64)), jnp.result_type(float))
     uv = np.asarray(rig.project(joints), np.float64)  # (2, T, 21, 2)
-    ahead = np.all(np.asarray(rig.to_views(joints))[..., 2] > 1e-2, axis=-1)  # (2, T)
+    ahead = np.all(np.asarray(rig.to_views(joints))[..., 2] > 1e-2, axis=-1)  # (2, T): every joint 1 cm or more ahead
     boxes = np.full((len(valid), 2, 4), np.nan)
     for v in range(2):
         for t in np.flatnonzero(np.asarray(valid, bool) & ahead[v] & np.all(np.isfinite(uv[v]), axis=(-1, -2))):
@@ -106,17 +106,26 @@ def hand_crop_boxes(clip_dir: str | pathlib.Path, side: str, rig: StereoRig, cfg
     'keypoints', 'filled', 'none')."""
     clip_dir = pathlib.Path(clip_dir)
     T = int(clips.read_meta(clip_dir)["num_frames"])
+
+    def read(path, kind):
+        arrays = clips.load_npz(path, kind)
+        frames = arrays["uv"].shape[1] if kind == "keypoints" else arrays["joints"].shape[0]
+        if frames < T:
+            raise clips.ClipFormatError(f"{path} has {frames} frames; the clip has {T} (meta.json num_frames)")
+        return arrays
+
     boxes = np.full((T, 2, 4), np.nan)
     target = clips.hand_file(pathlib.Path(labels) / clip_dir.name, side, "labels") if labels is not None else None
     if target is not None and target.is_file():
-        arrays = clips.load_npz(target, "labels")
+        arrays = read(target, "labels")
         boxes = joint_boxes(rig, arrays["joints"][:T], arrays["valid"][:T])
     elif clips.hand_file(clip_dir, side, "gt").is_file():
-        arrays = clips.load_npz(clips.hand_file(clip_dir, side, "gt"), "gt")
+        arrays = read(clips.hand_file(clip_dir, side, "gt"), "gt")
         boxes = joint_boxes(rig, arrays["joints"][:T], arrays["onscreen"][:T])
     from_joints = np.all(np.isfinite(boxes), axis=-1)
     if clips.hand_file(clip_dir, side, "keypoints").is_file():
-        detected = keypoint_boxes(clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints"), cfg)[:T]
+        keypoints = read(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
+        detected = keypoint_boxes({k: v[:, :T] for k, v in keypoints.items()}, cfg)
         boxes = np.where(from_joints[..., None], boxes, detected)
     found = np.all(np.isfinite(boxes), axis=-1)
     filled = np.stack([fill_gaps(boxes[:, v], cfg.max_gap) for v in range(2)], axis=1)
