@@ -354,11 +354,10 @@ def _crops(args) -> int:
     if clip_dirs is None:
         return 2
     try:
-        cfg = CropConfig(size=args.size, strategy=args.strategy)
-    except ValueError as err:
+        result = crop_clips(clip_dirs, CropConfig(size=args.size, strategy=args.strategy), labels=args.labels, overwrite=args.overwrite)
+    except ValueError as err:  # settings out of range, no labels folder
         print(f"esther crops: {err}", file=sys.stderr)
         return 2
-    result = crop_clips(clip_dirs, cfg, labels=args.labels, overwrite=args.overwrite)
     for failure in result["failed"]:
         print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
     hands = sum(len(r["hands"]) for r in result["cropped"])

@@ -95,6 +95,9 @@ def test_esther_crops_says_what_is_missing(rendered, tmp_path, capsys):
     assert cli.main(["crops", str(short), "--size", str(SIZE), "--overwrite"]) == 1
     assert "gt.npz has 3 frames; the clip has 6" in capsys.readouterr().err
     assert cli.main(["crops", str(tmp_path / "nowhere")]) == 2
+    assert cli.main(["crops", str(short), "--labels", str(tmp_path / "no_labels")]) == 2
+    assert "no_labels does not exist" in capsys.readouterr().err
+    assert cli.main(["crops", str(short), "--size", "8"]) == 2
 
 
 def test_keypoint_boxes_gaps_and_absent_views():

@@ -241,6 +241,8 @@ def crop_clips(clip_dirs: list[str | pathlib.Path], cfg: CropConfig = CropConfig
                overwrite: bool = False, progress: bool = True) -> dict:  # fmt: skip
     """`crop_clip` for every clip folder, with a progress bar; a clip that fails is
     reported and the others go on. Returns {'cropped': [records], 'failed': [{clip, error}]}."""
+    if labels is not None and not pathlib.Path(labels).is_dir():
+        raise ValueError(f"the labels folder {labels} does not exist (esther label --out)")
     done, failed = [], []
     for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="crops", unit="clip", disable=not progress):
         try:
