@@ -39,7 +39,6 @@ import esther_jax
 from esther_jax import model as M
 from esther_jax.eval import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
-from esther_jax.files import git_revision
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
@@ -66,14 +65,15 @@ for row in rows:
     scored[row] = studies.condition_table(studies.trained(scale, row), windows, scale, {"clean": {}})["clean"]
     print(f"{row:<36} MPJPE {scored[row]['mpjpe_mm']:.1f} mm")
 kept, trained_at = studies.earlier_rows(out, "ablations", scale, "esther", scored["esther"])
-trained_at |= dict.fromkeys(rows, git_revision())
+trained_at |= {r: studies.trained_at(scale, r) for r in rows}
 carried = [r for r in TABLE_ROWS if r in kept and r not in scored]
 results = {r: scored.get(r) or kept[r] for r in ["esther", *TABLE_ROWS] if r in scored or r in carried}
 print(f"kept from the earlier report: {', '.join(carried) or 'none'}")
 
 # %%
 full = results["esther"]
-table_rows = [{"variant": r, **v, "trained_at": (trained_at[r] or "unknown")[:7], "delta_mm": v["mpjpe_mm"] - full["mpjpe_mm"], "paper_mm": PAPER_MPJPE[r],
+short = lambda rev: rev[:7] + rev[40:] if rev else "unknown"  # noqa: E731  (a commit's first 7 hex digits, and " or earlier")
+table_rows = [{"variant": r, **v, "trained_at": short(trained_at[r]), "delta_mm": v["mpjpe_mm"] - full["mpjpe_mm"], "paper_mm": PAPER_MPJPE[r],
                "paper_delta_mm": PAPER_MPJPE[r] - PAPER_MPJPE["esther"],
                "separated": studies.separated(v["intervals"]["mpjpe_mm"], full["intervals"]["mpjpe_mm"]) if r != "esther" else None}
               for r, v in results.items()]  # fmt: skip

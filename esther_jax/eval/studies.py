@@ -44,7 +44,7 @@ from .. import metrics
 from .. import model as M
 from ..clips import list_clips
 from ..data import motion, synth
-from ..files import atomic_output, git_revision, strict_json, write_json
+from ..files import atomic_output, git_revision, read_json, strict_json, write_json
 from .reports import Record
 from ..train import data as data_lib
 from ..train import train_stages
@@ -166,6 +166,19 @@ def trained(scale: StudyScale, variant: str = "esther", *, progress: bool = True
     return net
 
 
+def trained_at(scale: StudyScale, variant: str = "esther") -> str | None:
+    """The git revision that trained the scale's network `variant` (`trained`): the one its
+    last training stage recorded (`config.json` of `<root>/runs/<variant>/stage2`, else
+    `stage1`); the current revision at a scale that does not train; None before training."""
+    if scale.stage1_steps == scale.stage2_steps == 0:
+        return git_revision()
+    for stage in ("stage2", "stage1"):
+        record = study_root(scale) / "runs" / variant / stage / "config.json"
+        if record.is_file():
+            return read_json(record).get("git_revision")
+    return None
+
+
 def training_windows(scale: StudyScale) -> list[data_lib.Window]:
     """The windows the scale's networks are trained on (the 'train' dataset)."""
     return data_lib.build_index(dataset(scale, "train"), data_config(scale))
@@ -234,7 +247,7 @@ def reproduces(now: dict, earlier: dict, keys: tuple[str, ...] = REPRODUCED_KEYS
 def earlier_rows(out: str | pathlib.Path, study: str, scale: StudyScale, reference: str, now: dict) -> tuple[dict[str, dict], dict[str, str | None]]:
     """The rows of an earlier run of `study` (`<out>/<study>.json`, `results["rows"]`) that
     this run may show next to its own, and the revision each was trained at
-    (`results["trained_at"]`, else that report's revision). Kept only when the earlier
+    (`results["trained_at"]`, else "<that report's revision> or earlier"). Kept only when the earlier
     report is of the same scale and its `reference` row is `reproduced` by this run's
     (`now`): the same network trained again on the same data and budget lands where it
     did, so rows trained then are comparable with rows trained now. Otherwise, or without
@@ -252,7 +265,8 @@ def earlier_rows(out: str | pathlib.Path, study: str, scale: StudyScale, referen
         print(f"{path}: its {reference!r} row (MPJPE {rows[reference].get('mpjpe_mm')} mm) is not reproduced by this run's "
               f"({now.get('mpjpe_mm')} mm); its rows are not kept")  # fmt: skip
         return {}, {}
-    trained_at = {r: (record["results"].get("trained_at") or {}).get(r, record.get("git_revision")) for r in rows}
+    made = record.get("git_revision")
+    trained_at = {r: (record["results"].get("trained_at") or {}).get(r, made and f"{made} or earlier") for r in rows}
     return rows, trained_at
 
 
