@@ -571,11 +571,14 @@ def test_mixed_precision_computes_in_bfloat16_and_keeps_geometry_in_float32(synt
         train.TrainConfig(compute_dtype="float16")
 
 
-def test_feature_cache_holds_what_the_frozen_backbone_sees(synth_clip, tmp_path):
-    """precompute_features once; windows then carry the cached tokens, equal (float16) to
-    the backbone's tokens of the crops the network would see, mirrored ones for the left
-    hand; another backbone is refused, a second fill does nothing."""
+def test_feature_cache_holds_what_the_frozen_backbone_sees(synth_clip, tmp_path, monkeypatch):
+    """precompute_features once (a chunk of frames at a time, the last one padded); windows
+    then carry the cached tokens, equal (float16) to the backbone's tokens of the crops the
+    network would see, mirrored ones for the left hand; another backbone is refused, a
+    second fill does nothing."""
     from esther_jax.train import features as F
+
+    monkeypatch.setattr(F, "FEATURE_CHUNK", 3)  # 8 frames: chunks of 3, 3 and 2 (padded)
 
     model_cfg = M.config("cpu-tiny", num_frames=RUN_FRAMES, freeze_backbone=True)
     backbone = M.ESTHER(model_cfg, key=jax.random.key(0)).backbone

@@ -8,8 +8,9 @@ sees them*: a left hand's of its mirrored crops (`model.mirror_clip`), since fea
 cannot be mirrored afterwards.
 `out/features.json` records the backbone (name, sha256 of its weights) and the crop
 size; a cache made by another backbone is refused. The job resumes (finished files are
-kept), writes each file atomically, and holds a lock per clip, so two processes can
-fill one cache. `DataConfig.features = out` makes `load_example` read them
+kept), writes each file atomically (streamed to disk, `FEATURE_CHUNK` frames at a
+time from the memory-mapped crops, so a long recorded clip fits in memory), and holds a
+lock per clip, so two processes can fill one cache. `DataConfig.features = out` makes `load_example` read them
 (`ClipInput.features`, no images): pixel-level augmentation is then impossible and only
 the blanking of views and frames applies (`masking.corrupt`).
 """
@@ -31,6 +32,8 @@ from ..model.backbones import ConvStem, ViT
 from ..model.esther import ClipInput, clip_input_from_crops, extract_features, mirror_clip
 
 RECORD = "features.json"
+FEATURE_CHUNK = 16
+"""Frames whose crops go through the backbone at once."""
 
 
 def backbone_digest(backbone: ViT | ConvStem) -> str:
@@ -84,13 +87,21 @@ def precompute_features(
         with exclusive_lock(target.parent / f".{side}.lock"):
             if target.exists():  # another process made it meanwhile
                 continue
-            crops = clips.load_crops(clips.crops_file(clip, side))
+            crops = clips.load_crops(clips.crops_file(clip, side), mmap=True)
             rig = StereoRig.from_json(clip / "rig.json")
-            example = clip_input_from_crops(crops, rig.T_rig_cams, size=crop_size)
-            features = np.asarray(_features(backbone, example, side == "left"))
-            with atomic_output(target) as tmp, open(tmp, "wb") as f:
-                np.save(f, features)
+            T = crops["images"].shape[0]
+            with atomic_output(target) as tmp:
+                cache = None
+                for start in range(0, T, FEATURE_CHUNK):  # a chunk of frames at a time: long clips fit in memory
+                    frames = np.minimum(np.arange(start, start + FEATURE_CHUNK), T - 1)  # the last chunk padded: one compiled shape
+                    chunk = {k: np.asarray(crops[k][frames]) for k in ("images", "K", "R_cam_crop", "flow")}
+                    tokens = np.asarray(_features(backbone, clip_input_from_crops(chunk, rig.T_rig_cams, size=crop_size), side == "left"))
+                    if cache is None:
+                        cache = np.lib.format.open_memmap(tmp, mode="w+", dtype=tokens.dtype, shape=(T,) + tokens.shape[1:])
+                    cache[start : start + FEATURE_CHUNK] = tokens[: T - start]
+                cache.flush()
+                del cache
     return out
 
 
-__all__ = ["backbone_digest", "feature_file", "precompute_features"]
+__all__ = ["FEATURE_CHUNK", "backbone_digest", "feature_file", "precompute_features"]
