@@ -83,6 +83,23 @@ def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
     assert example.images.shape == (4, 2, 3, SIZE, SIZE) and np.all(np.isfinite(np.asarray(example.K)))
 
 
+def test_crops_of_a_detected_clip_follow_its_keypoints(rendered, tmp_path):
+    """Without a 3D hand (a clip of esther detect), the windows come from the detections;
+    the crops then frame the hand about as the ground truth's projection would."""
+    _, folder = rendered
+    work = shutil.copytree(folder, tmp_path / "clip")
+    for side in clips.SIDES:
+        clips.hand_file(work, side, "gt").unlink()
+    record = vc.crop_clip(work, vc.CropConfig(size=SIZE), overwrite=True)
+    for side, counts in record["hands"].items():
+        assert counts["joints"] == 0 and counts["keypoints"] > 0
+        detected = clips.load_crops(clips.crops_file(work, side))["box"]
+        projected, _ = vc.hand_crop_boxes(folder, side, StereoRig.from_json(folder / "rig.json"), vc.CropConfig(size=SIZE))
+        both = np.isfinite(detected).all(axis=-1) & np.isfinite(projected).all(axis=-1)
+        centres = lambda b: (b[both][:, :2] + b[both][:, 2:]) / 2  # noqa: E731
+        assert both.any() and np.median(np.abs(centres(detected) - centres(projected))) < 10  # px of 640 x 480
+
+
 def test_esther_crops_says_what_is_missing(rendered, tmp_path, capsys):
     _, folder = rendered
     work = shutil.copytree(folder, tmp_path / "clip")
