@@ -175,8 +175,10 @@ def render_crops(
         read += 1
         if t % CHUNK_FRAMES == 0:
             stop = min(t + CHUNK_FRAMES, T)
+            chunk = np.minimum(np.arange(t, t + CHUNK_FRAMES), T - 1)  # the last chunk padded: one compiled shape
             for v, camera in enumerate((rig.left, rig.right)):
-                batch, table = _crop_tables(camera, jnp.asarray(held[t:stop, v], dtype), cfg.strategy, S)
+                batch, table = _crop_tables(camera, jnp.asarray(held[chunk, v], dtype), cfg.strategy, S)
+                batch = jax.tree.map(lambda x: x[: stop - t], batch)
                 fx, fy, cx, cy = (np.asarray(x) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
                 K[t:stop, v] = np.stack([np.stack([fx, 0 * fx, cx], -1), np.stack([0 * fy, fy, cy], -1), np.broadcast_to([0.0, 0.0, 1.0], (len(fx), 3))], 1)
                 R[t:stop, v] = np.asarray(batch.R_cam_crop)
