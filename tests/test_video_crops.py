@@ -42,8 +42,8 @@ def test_crops_cut_from_the_views_are_the_rendered_crops(rendered):
         np.testing.assert_allclose(cut["K"], ref["K"], rtol=1e-5, atol=1e-4)
         np.testing.assert_allclose(cut["R_cam_crop"], ref["R_cam_crop"], atol=1e-6)
         for t, v in np.ndindex(6, 2):
-            # the renderer draws a crop's pixels beyond the source image too; cut ones are black there
             inside = cut["images"][t, v, ..., 0] > 0
+            assert inside.all() or np.mean(ref["images"][t, v][~inside] < 8) > 0.95  # beyond the source image: black in both
             if inside.mean() > 0.5:
                 a, b = ref["images"][t, v][inside].astype(float), cut["images"][t, v, ..., 0][inside].astype(float)
                 assert np.corrcoef(a, b)[0, 1] > 0.9, (side, t, v)

@@ -27,11 +27,13 @@ from ..files import check_out_dir, exclusive_lock, read_json, remove_stale_parti
 from . import detector, flow, motion, render
 
 CROP_SIZE = 224
-ENGINE_REVISION = 2
+ENGINE_REVISION = 3
 """Incremented when the engine makes other clips from the same settings and seed (motion,
 built-in hand, renderer); `synth.json` records it, and a record without it was made at
 revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' contacts
-(`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2)."""
+(`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2). Revision 3: crop
+pixels beyond the source image are black (the renderer drew the scene there, which no
+camera records and a crop cut from a recording, `esther crops`, never shows)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,11 +215,13 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
                 T_crop_cam[:3, :3] = R_all[t].T
                 T_world_crop = m.T_world_rig[t] @ T_rig_cam @ np.linalg.inv(T_crop_cam)
                 meshes = _meshes_in(vertices, m, scene, t, T_crop_cam @ T_cam_rig)
-                images[t, v], _ = render.render_view(scene, crop.camera, T_world_crop, meshes)
+                valid[t, v] = crop_lib.crop_coverage(camera, crop)
+                rendered, _ = render.render_view(scene, crop.camera, T_world_crop, meshes)
+                # beyond the source image a camera records nothing: black, as in crops cut from a recording
+                images[t, v] = np.where(valid[t, v].reshape(valid[t, v].shape + (1,) * (rendered.ndim - 2)), rendered, 0)
                 K[t, v] = [[fx[t], 0, cx[t]], [0, fy[t], cy[t]], [0, 0, 1]]
                 R[t, v] = R_all[t]
                 boxes[t, v] = smooth[t]
-                valid[t, v] = crop_lib.crop_coverage(camera, crop)
         # The token's homography cancels the crop window's own motion. With projections
         # K R^T of source-camera rays (not K alone) it also cancels the window's rotation
         # (hc crops): P_t+1 P_t^-1 = K_t+1 R_t+1^T R_t K_t^-1. Axis-aligned crops have R = I.

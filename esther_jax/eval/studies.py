@@ -7,7 +7,9 @@ and reports. The notebooks under `notebooks/` are thin scripts over these functi
   training stages of the learning benchmark, a few hundred held-out windows), chosen by
   `ESTHER_STUDY_SCALE`.
 - **Data and models** (`dataset`, `trained`): synthetic clip folders and trained networks
-  under one root (`ESTHER_STUDY_ROOT`, default `~/.cache/esther_jax/studies/<scale>`),
+  under one root (`ESTHER_STUDY_ROOT`, default `~/.cache/esther_jax/studies/<scale>-engine<N>`,
+  N the synthetic engine's `ENGINE_REVISION`: networks trained on another revision's clips
+  are never reused),
   made on first use and reused by every study: the studies share the held-out clips and
   the models they compare (the same network is scored in the view-drop, frame-drop,
   corruption and gate studies). Both resume after an interruption (`synth.synthesize`,
@@ -102,7 +104,7 @@ def scale_from_env(default: str = "smoke") -> StudyScale:
 
 def study_root(scale: StudyScale) -> pathlib.Path:
     """Where the studies of this scale keep their clips and trained models."""
-    root = os.environ.get(ROOT_ENV) or pathlib.Path.home() / ".cache" / "esther_jax" / "studies" / scale.name
+    root = os.environ.get(ROOT_ENV) or pathlib.Path.home() / ".cache" / "esther_jax" / "studies" / f"{scale.name}-engine{synth.ENGINE_REVISION}"
     return pathlib.Path(root)
 
 
