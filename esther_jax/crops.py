@@ -302,7 +302,14 @@ def resize_crops(images: np.ndarray, K: np.ndarray, size: int) -> tuple[np.ndarr
     lead = images.shape[: -3 if rgb else -2]
     flat = images.reshape((-1,) + images.shape[len(lead):])
     resized = np.stack([cv2.resize(im, (size, size), interpolation=interpolation) for im in flat])
-    K = K.copy()
+    return resized.reshape(lead + resized.shape[1:]), resize_intrinsics(K, S, size)
+
+
+def resize_intrinsics(K: Float[np.ndarray, "*batch 3 3"], source_size: int, size: int) -> Float[np.ndarray, "*batch 3 3"]:
+    """The intrinsics of S x S crops (`source_size` S) as those of the crops resized to
+    `size` x `size` (`resize_crops`; pixel-centre convention), e.g. for cached features."""
+    K = np.array(K, np.float64)
+    scale = size / source_size
     K[..., :2, :2] *= scale
     K[..., :2, 2] = scale * (K[..., :2, 2] + 0.5) - 0.5
-    return resized.reshape(lead + resized.shape[1:]), K
+    return K

@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import clips, mano
 from ..cameras import StereoRig
-from ..crops import resize_crops
+from ..crops import resize_crops, resize_intrinsics
 from ..files import read_json, write_json
 from ..model.esther import ClipInput, mirror_clip
 from .features import feature_file
@@ -159,6 +159,7 @@ def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
             raise clips.ClipFormatError(f"{feature_file(cfg.features, clip, window.side)} has {cached.shape[0]} frames; "
                                         f"the crops have {images.shape[0]}: rebuild the feature cache")  # fmt: skip
         visual = {"features": np.asarray(cached[sl])}
+        K = resize_intrinsics(K, images.shape[2], cfg.crop_size)  # the crops the features were computed from
     else:  # only the window's frames are read (and resized)
         pixels, K = resize_crops(np.asarray(images[sl]), K, cfg.crop_size)
         visual = {"pixels": pixels if pixels.ndim == 5 else np.repeat(pixels[..., None], 3, axis=-1)}  # grey rigs: RGB
