@@ -234,6 +234,8 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
                 continue
             clips.save_crops(clips.crops_file(clip_dir, side), **render_crops(_frames(clip_dir), rig, boxes, cfg))
             hands[side] = counts
+        for side in set(made_elsewhere) - set(hands):  # replaced crops of a hand with no evidence now: not left behind
+            clips.crops_file(clip_dir, side).unlink()
         record = {"settings": settings, "hands": hands}
         clips.write_meta(clip_dir, **{**clips.read_meta(clip_dir), "crops": record})
     return record
