@@ -58,7 +58,9 @@ def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
     work = shutil.copytree(folder, tmp_path / "clip")
     assert cli.main(["crops", str(work), "--size", str(SIZE)]) == 1  # esther synth's crops are kept
     assert cli.main(["crops", str(work), "--size", str(SIZE), "--overwrite"]) == 0
-    record = json.loads((work / "meta.json").read_text())["crops"]
+    meta = json.loads((work / "meta.json").read_text())
+    record = meta["crops"]
+    assert "crop_strategy" not in meta  # esther synth's record of the crops replaced
     assert record["settings"]["size"] == SIZE and record["settings"]["strategy"] == "offbb120"
     assert sorted(record["hands"]) == sorted(clip.crops)
     for side, counts in record["hands"].items():

@@ -237,7 +237,8 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
         for side in set(made_elsewhere) - set(hands):  # replaced crops of a hand with no evidence now: not left behind
             clips.crops_file(clip_dir, side).unlink()
         record = {"settings": settings, "hands": hands}
-        clips.write_meta(clip_dir, **{**clips.read_meta(clip_dir), "crops": record})
+        meta = {k: v for k, v in clips.read_meta(clip_dir).items() if k != "crop_strategy"}  # esther synth's, of the crops replaced
+        clips.write_meta(clip_dir, **{**meta, "crops": record})
     return record
 
 
