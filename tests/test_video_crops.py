@@ -2,6 +2,7 @@
 videos, they must be the crops the synthetic engine renders directly (same crop camera,
 same pixels up to resampling), on a fisheye rig."""
 
+import dataclasses
 import json
 import shutil
 
@@ -15,6 +16,7 @@ from esther_jax.crops import hand_box
 from esther_jax.data import motion, synth
 from esther_jax.data import video_crops as vc
 from esther_jax.train import data as train_data
+from esther_jax.train.features import feature_file
 
 SIZE = 64
 
@@ -186,3 +188,10 @@ def test_stored_crops_are_memory_mapped_and_load_as_compressed_ones(rendered, tm
         if a.side == "right":
             for x, y in zip(jax.tree.leaves(train_data.load_example(a, cfg)), jax.tree.leaves(train_data.load_example(b, cfg))):
                 np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # cached features (of the crops resized to 32 px) come with those crops' intrinsics
+    cached = feature_file(tmp_path / "features", folder, "right")
+    cached.parent.mkdir(parents=True)
+    np.save(cached, np.zeros((6, 2, 4, 8), np.float16))
+    window = next(w for w in train_data.build_index([folder], cfg) if w.side == "right")
+    with_features = train_data.load_example(window, dataclasses.replace(cfg, features=str(tmp_path / "features")))[0]
+    np.testing.assert_array_equal(np.asarray(with_features.K), np.asarray(train_data.load_example(window, cfg)[0].K))
