@@ -151,12 +151,16 @@ MIN_HAND_BOX_PX = 40.0
 """`hand_box` never makes a box smaller than this (px): a far hand keeps some context."""
 
 
-def hand_box(uv: Float[np.ndarray, "n 2"], size_floor: float = MIN_HAND_BOX_PX) -> Float[np.ndarray, "4"]:
+def hand_box(uv: Float[np.ndarray, "*batch n 2"], size_floor: float = MIN_HAND_BOX_PX) -> Float[np.ndarray, "*batch 4"]:
     """The square box (x0, y0, x1, y1, px) of a hand's 2D keypoints: centred on their
-    extent, its side their longer extent (at least `size_floor`)."""
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    centre, half = 0.5 * (lo + hi), max(0.5 * float(np.max(hi - lo)), size_floor / 2)
-    return np.concatenate([centre - half, centre + half])
+    extent, its side their longer extent (at least `size_floor`). Keypoints with a NaN
+    coordinate are left out; a box of no keypoint is NaN."""
+    uv = np.asarray(uv, np.float64)
+    seen = np.all(np.isfinite(uv), axis=-1, keepdims=True)
+    lo, hi = np.where(seen, uv, np.inf).min(axis=-2), np.where(seen, uv, -np.inf).max(axis=-2)
+    with np.errstate(invalid="ignore"):  # no keypoint: inf - inf, NaN below
+        centre, half = 0.5 * (lo + hi), np.maximum(0.5 * np.max(hi - lo, axis=-1), size_floor / 2)[..., None]
+    return np.where(np.any(seen, axis=-2), np.concatenate([centre - half, centre + half], axis=-1), np.nan)
 
 
 def smooth_boxes(boxes: Float[np.ndarray, "T 4"]) -> Float[np.ndarray, "T 4"]:

@@ -202,7 +202,7 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
         valid = np.zeros((T, 2, S, S), bool)
         boxes = np.zeros((T, 2, 4), np.float32)
         for v, (camera, T_rig_cam, T_cam_rig) in enumerate(zip((rig.left, rig.right), T_rig_cams, T_cams_rig)):
-            raw = np.stack([crop_lib.hand_box(uv[t, v]) for t in range(T)])
+            raw = crop_lib.hand_box(uv[:, v])
             smooth = crop_lib.smooth_boxes(raw) if T >= 5 else raw  # (clips shorter than the filter keep their raw float64 boxes)
             smooth = smooth + rng.normal(scale=0.02, size=smooth.shape) * (smooth[:, 2:3] - smooth[:, 0:1])
             make = functools.partial(crop_lib.hand_crop, camera, strategy=cfg.crop_strategy, size=S)

@@ -66,11 +66,8 @@ def joint_boxes(rig: StereoRig, joints: Float[np.ndarray, "T 21 3"], valid: np.n
     joints = jnp.asarray(np.nan_to_num(np.asarray(joints, np.float64)), jnp.result_type(float))
     uv = np.asarray(rig.project(joints), np.float64)  # (2, T, 21, 2)
     ahead = np.all(np.asarray(rig.to_views(joints))[..., 2] > 1e-2, axis=-1)  # (2, T): every joint 1 cm or more ahead
-    boxes = np.full((len(valid), 2, 4), np.nan)
-    for v in range(2):
-        for t in np.flatnonzero(np.asarray(valid, bool) & ahead[v] & np.all(np.isfinite(uv[v]), axis=(-1, -2))):
-            boxes[t, v] = crop_lib.hand_box(uv[v, t])
-    return boxes
+    shown = np.asarray(valid, bool) & ahead & np.all(np.isfinite(uv), axis=(-1, -2))
+    return np.where(shown[..., None], crop_lib.hand_box(uv), np.nan).swapaxes(0, 1)
 
 
 def keypoint_boxes(keypoints: dict[str, np.ndarray], cfg: CropConfig = CropConfig()) -> Float[np.ndarray, "T 2 4"]:
@@ -81,10 +78,7 @@ def keypoint_boxes(keypoints: dict[str, np.ndarray], cfg: CropConfig = CropConfi
     seen = np.isfinite(uv).all(axis=-1).any(axis=0)  # (T, 2, 21): some detector has the joint
     median = np.nanmedian(np.where(seen[None, ..., None], uv, 0.0), axis=0) if len(uv) > 1 else uv[0]
     median = np.where(seen[..., None], median, np.nan)  # (T, 2, 21, 2)
-    boxes = np.full(median.shape[:2] + (4,), np.nan)
-    for t, v in zip(*np.nonzero(seen.sum(axis=-1) >= cfg.min_joints)):
-        boxes[t, v] = crop_lib.hand_box(median[t, v][seen[t, v]])
-    return boxes
+    return np.where((seen.sum(axis=-1) >= cfg.min_joints)[..., None], crop_lib.hand_box(median), np.nan)
 
 
 def fill_gaps(boxes: Float[np.ndarray, "T 4"], max_gap: int) -> Float[np.ndarray, "T 4"]:

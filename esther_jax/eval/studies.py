@@ -258,7 +258,7 @@ def earlier_rows(out: str | pathlib.Path, study: str, scale: StudyScale, referen
     path = pathlib.Path(out) / f"{study}.json"
     if not path.is_file():
         return {}, {}
-    record = json.loads(path.read_text())
+    record = read_json(path)
     rows = (record.get("results") or {}).get("rows") or {}
     if record.get("scale") != dataclasses.asdict(scale) or reference not in rows:
         print(f"{path}: of another scale or without a {reference!r} row; its rows are not kept")
