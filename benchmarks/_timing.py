@@ -1,10 +1,28 @@
-"""Shared timing helpers for the benchmark scripts (compile apart, medians of rounds)."""
+"""Shared timing helpers for the benchmark scripts (compile apart, medians of rounds, and
+the machine's speed printed beside every run's numbers)."""
 
+import os
 import statistics
 import time
 from collections.abc import Callable
 
 import jax
+import numpy as np
+
+
+def machine() -> str:
+    """The machine the numbers were taken on: JAX's version and backend, the CPU cores,
+    and numpy's single-precision matrix product (2048 x 2048, best of 5, GFLOP/s).
+    Machines of one class differ from day to day (on 2-core CI-class machines we read 71
+    to 249 GFLOP/s), so a timing is only comparable with another of a similar reading."""
+    a = np.random.default_rng(0).random((2048, 2048), dtype=np.float32)
+    a @ a
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        a @ a
+        best = min(best, time.perf_counter() - t0)
+    return f"jax {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} cores, numpy SGEMM {2 * 2048**3 / best / 1e9:.0f} GFLOP/s"
 
 
 def compile_seconds(fn: Callable, *args) -> float:

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import compile_seconds, interleaved  # noqa: E402
+from _timing import compile_seconds, interleaved, machine  # noqa: E402
 
 from esther_jax import mano  # noqa: E402
 
@@ -162,7 +162,7 @@ def main():
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--json", type=str, default=None, help="also write the rows as JSON")
     args = parser.parse_args()
-    print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} cores")
+    print(machine())
     rows = run(args.batches, args.rounds)
     if args.json:
         with open(args.json, "w") as f:

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import compile_seconds, interleaved  # noqa: E402
+from _timing import compile_seconds, interleaved, machine  # noqa: E402
 
 from esther_jax import cameras  # noqa: E402
 from esther_jax.triangulation import triangulate_batch  # noqa: E402
@@ -95,7 +95,7 @@ def main():
     parser.add_argument("--frames", type=int, nargs="+", default=[1, 1000, 100_000])
     parser.add_argument("--rounds", type=int, default=5)
     args = parser.parse_args()
-    print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} cores, OpenCV {cv2.__version__}")
+    print(f"{machine()}, OpenCV {cv2.__version__}")
     run_triangulation(args.frames, args.rounds)
     run_fisheye(args.rounds)
 

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import compile_seconds, interleaved  # noqa: E402
+from _timing import compile_seconds, interleaved, machine  # noqa: E402
 
 from esther_jax import model as M  # noqa: E402
 from esther_jax.cameras import rig_preset  # noqa: E402
@@ -113,7 +113,7 @@ def main():
     rows = [row for name in args.configs for row in measure(name, args.batch, args.rounds)]
     if args.backbone:
         rows.append(backbone_row(max(1, args.rounds // 2)))
-    print(f"jax {jax.__version__}, {jax.devices()[0].device_kind}, {FRAMES}-frame stereo clips, float32")
+    print(f"{machine()}, {jax.devices()[0].device_kind}, {FRAMES}-frame stereo clips, float32")
     header = (f"{'config':<24}{'input':<14}{'B':>3}{'fwd ms/clip':>13}{'fwd+grad ms/clip':>18}{'compile s':>12}"
               f"{'XLA MiB fwd/grad':>18}{'train M':>9}")
     print(header)

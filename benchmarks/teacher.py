@@ -55,6 +55,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(__file__))
+from _timing import machine  # noqa: E402
+
 import esther_jax  # noqa: E402
 import fitting  # noqa: E402
 from esther_jax import cameras, compilation, mano, metrics  # noqa: E402
@@ -435,7 +438,7 @@ def main():
         return
     if args.quick:
         args.clips, args.frames = 1, 32
-    print(f"jax {jax.__version__}, {jax.default_backend()}, {os.cpu_count()} cores; solvers {', '.join(fitting.SOLVERS)}")
+    print(f"{machine()}; solvers {', '.join(fitting.SOLVERS)}")
     if args.section in ("compile", "all") and not (args.quick and args.section == "all"):
         compile_section(args.frames)
     if args.section in ("sweep", "all"):

@@ -80,7 +80,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import compile_seconds, median_seconds  # noqa: E402
+from _timing import compile_seconds, machine, median_seconds  # noqa: E402
 
 from esther_jax import mano, metrics  # noqa: E402
 from esther_jax import model as M  # noqa: E402
@@ -453,6 +453,7 @@ def main() -> None:
     from esther_jax import enable_compilation_cache
 
     enable_compilation_cache()
+    print(machine(), flush=True)
     if args.what == "steps":
         bench_steps(args.configs, args.batch, args.dtypes)
     elif args.what == "overfit":
