@@ -36,11 +36,14 @@ def _rgb(frames):
 
 def test_crops_cut_from_the_views_are_the_rendered_crops(rendered):
     """Given the engine's crop windows, the crops cut from its full views have its crop
-    cameras exactly and its pixels up to resampling (the renderer draws crops directly)."""
+    cameras exactly and its pixels up to resampling (the renderer draws crops directly);
+    both hands are cut in one pass over the frames (a one-pass iterator)."""
     clip, _ = rendered
-    frames = list(zip(_rgb(clip.videos["left"]), _rgb(clip.videos["right"])))
+    frames = zip(_rgb(clip.videos["left"]), _rgb(clip.videos["right"]))
+    both = vc.render_crops(frames, clip.rig, {side: ref["box"].astype(np.float64) for side, ref in clip.crops.items()}, vc.CropConfig(size=SIZE))
+    assert len(clip.crops) == 2 and set(both) == set(clip.crops)
     for side, ref in clip.crops.items():
-        cut = vc.render_crops(frames, clip.rig, ref["box"].astype(np.float64), vc.CropConfig(size=SIZE))
+        cut = both[side]
         np.testing.assert_allclose(cut["K"], ref["K"], rtol=1e-5, atol=1e-4)
         np.testing.assert_allclose(cut["R_cam_crop"], ref["R_cam_crop"], atol=1e-6)
         for t, v in np.ndindex(6, 2):
@@ -144,13 +147,15 @@ def test_keypoint_boxes_gaps_and_absent_views():
     rig = synth.make_clip(0, 5, synth.SynthConfig(num_frames=2, rig="hot3d_aria")).rig
     frame = np.full((rig.left.height, rig.left.width, 3), 200, np.uint8)
     box = np.array([[[250.0, 200, 330, 280], [np.nan] * 4]] * 2)
-    cut = vc.render_crops([(frame, frame)] * 2, rig, box, vc.CropConfig(size=32))
+    cut = vc.render_crops([(frame, frame)] * 2, rig, {"right": box}, vc.CropConfig(size=32))["right"]
     assert cut["images"][:, 1].max() == 0 and np.isnan(cut["box"][:, 1]).all() and np.isfinite(cut["K"]).all()
     assert cut["images"][:, 0].max() == 200
     with pytest.raises(clips.ClipFormatError, match="1 frames; the clip has 2"):
-        vc.render_crops([(frame, frame)], rig, box, vc.CropConfig(size=32))
+        vc.render_crops([(frame, frame)], rig, {"right": box}, vc.CropConfig(size=32))
     with pytest.raises(clips.ClipFormatError, match="the rig's camera is 640 x 480"):
-        vc.render_crops([(frame[:100], frame)] * 2, rig, box, vc.CropConfig(size=32))
+        vc.render_crops([(frame[:100], frame)] * 2, rig, {"right": box}, vc.CropConfig(size=32))
+    with pytest.raises(ValueError, match="different numbers of frames"):
+        vc.render_crops([(frame, frame)] * 2, rig, {"right": box, "left": box[:1]}, vc.CropConfig(size=32))
 
 
 def test_crops_files_are_validated(rendered, tmp_path):

@@ -23,7 +23,7 @@ folder.
 
 import dataclasses
 import pathlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 
 import equinox as eqx
 import jax
@@ -149,46 +149,67 @@ def _crop_tables(camera: AbstractCamera, boxes: Float[jax.Array, "n 4"], strateg
     return batch, jax.vmap(crop_lib.rectification_map, in_axes=(None, 0))(camera, batch)
 
 
+def _chunk_geometry(
+    rig: StereoRig, held: Float[np.ndarray, "T 2 4"], t: int, size: int, strategy: str
+) -> tuple[Float[np.ndarray, "n 2 3 3"], Float[np.ndarray, "n 2 3 3"], list[Float[np.ndarray, "chunk S S 2"]]]:
+    """The crop intrinsics, rotations and resampling tables of frames t .. t + CHUNK_FRAMES
+    (n of them, fewer at the clip's end) of one hand, from its held boxes."""
+    T = len(held)
+    n = min(CHUNK_FRAMES, T - t)
+    chunk = np.minimum(np.arange(t, t + CHUNK_FRAMES), T - 1)  # the last chunk padded: one compiled shape
+    K, R, tables = np.zeros((n, 2, 3, 3), np.float32), np.zeros((n, 2, 3, 3), np.float32), []
+    for v, camera in enumerate((rig.left, rig.right)):
+        batch, table = _crop_tables(camera, jnp.asarray(held[chunk, v], jnp.result_type(float)), strategy, size)
+        fx, fy, cx, cy = (np.asarray(x)[:n] for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
+        K[:, v, 0, 0], K[:, v, 0, 2], K[:, v, 1, 1], K[:, v, 1, 2], K[:, v, 2, 2] = fx, cx, fy, cy, 1.0
+        R[:, v] = np.asarray(batch.R_cam_crop)[:n]
+        tables.append(np.asarray(table, np.float32))
+    return K, R, tables
+
+
 def render_crops(
-    frames: Iterable[tuple[np.ndarray, np.ndarray]], rig: StereoRig, boxes: Float[np.ndarray, "T 2 4"], cfg: CropConfig = CropConfig()
-) -> dict[str, np.ndarray]:
-    """The crops file arrays of one hand (docs/architecture.md: images (T, 2, S, S, 3) uint8,
-    K, R_cam_crop, box, flow) from its boxes (`hand_crop_boxes`) and the views' frames
-    (any iterable of (left, right) RGB images, read once, frame by frame)."""
-    T, S = len(boxes), cfg.size
-    images = np.zeros((T, 2, S, S, 3), np.uint8)
-    K = np.zeros((T, 2, 3, 3), np.float32)
-    R = np.zeros((T, 2, 3, 3), np.float32)
-    covered = np.zeros((T, 2, S, S), bool)
-    present = np.all(np.isfinite(boxes), axis=-1)
-    held = np.stack([_held(boxes[:, v], camera) for v, camera in enumerate((rig.left, rig.right))], axis=1)
-    dtype = jnp.result_type(float)
-    tables = [None, None]
+    frames: Iterable[tuple[np.ndarray, np.ndarray]],
+    rig: StereoRig,
+    boxes: Mapping[str, Float[np.ndarray, "T 2 4"]],
+    cfg: CropConfig = CropConfig(),
+) -> dict[str, dict[str, np.ndarray]]:
+    """The crops file arrays (docs/architecture.md: images (T, 2, S, S, 3) uint8, K,
+    R_cam_crop, box, flow) of each hand in `boxes` ({side: its boxes, `hand_crop_boxes`}),
+    all cut in one pass over the views' frames (any iterable of (left, right) RGB images,
+    read once, frame by frame: a clip's videos are decoded once for both hands)."""
+    if len({len(b) for b in boxes.values()}) > 1:
+        raise ValueError(f"the hands' boxes cover different numbers of frames: {({side: len(b) for side, b in boxes.items()})}")
+    T, S = len(next(iter(boxes.values()), ())), cfg.size
+    cameras = (rig.left, rig.right)
+    out = {side: {"images": np.zeros((T, 2, S, S, 3), np.uint8), "K": np.zeros((T, 2, 3, 3), np.float32),
+                  "R_cam_crop": np.zeros((T, 2, 3, 3), np.float32)} for side in boxes}  # fmt: skip
+    covered = {side: np.zeros((T, 2, S, S), bool) for side in boxes}
+    present = {side: np.all(np.isfinite(b), axis=-1) for side, b in boxes.items()}
+    held = {side: np.stack([_held(b[:, v], camera) for v, camera in enumerate(cameras)], axis=1) for side, b in boxes.items()}
+    tables: dict[str, list[np.ndarray]] = {}
     read = 0
     for t, views in zip(range(T), frames):
         read += 1
-        if t % CHUNK_FRAMES == 0:
-            stop = min(t + CHUNK_FRAMES, T)
-            chunk = np.minimum(np.arange(t, t + CHUNK_FRAMES), T - 1)  # the last chunk padded: one compiled shape
-            for v, camera in enumerate((rig.left, rig.right)):
-                batch, table = _crop_tables(camera, jnp.asarray(held[chunk, v], dtype), cfg.strategy, S)
-                batch = jax.tree.map(lambda x: x[: stop - t], batch)
-                fx, fy, cx, cy = (np.asarray(x) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
-                K[t:stop, v] = np.stack([np.stack([fx, 0 * fx, cx], -1), np.stack([0 * fy, fy, cy], -1), np.broadcast_to([0.0, 0.0, 1.0], (len(fx), 3))], 1)
-                R[t:stop, v] = np.asarray(batch.R_cam_crop)
-                tables[v] = np.asarray(table, np.float32)
-        for v, (camera, image) in enumerate(zip((rig.left, rig.right), views)):
+        for v, (camera, image) in enumerate(zip(cameras, views)):
             if image.shape[:2] != (camera.height, camera.width):
                 raise clips.ClipFormatError(f"frame {t} of the {('left', 'right')[v]} view is {image.shape[1]} x {image.shape[0]} px; "
                                             f"the rig's camera is {camera.width} x {camera.height}")  # fmt: skip
-            if present[t, v]:
-                table = tables[v][t % CHUNK_FRAMES]
-                images[t, v] = crop_lib.remap_table(image, table)
-                covered[t, v] = crop_lib.table_coverage(table, camera)
+        for side, arrays in out.items():
+            if t % CHUNK_FRAMES == 0:
+                stop = min(t + CHUNK_FRAMES, T)
+                arrays["K"][t:stop], arrays["R_cam_crop"][t:stop], tables[side] = _chunk_geometry(rig, held[side], t, S, cfg.strategy)
+            for v, (camera, image) in enumerate(zip(cameras, views)):
+                if present[side][t, v]:
+                    table = tables[side][v][t % CHUNK_FRAMES]
+                    arrays["images"][t, v] = crop_lib.remap_table(image, table)
+                    covered[side][t, v] = crop_lib.table_coverage(table, camera)
     if read < T:
         raise clips.ClipFormatError(f"the videos hold {read} frames; the clip has {T} (meta.json num_frames)")
-    tokens = flow.clip_flow_tokens(images[:, 0], K[:, 0] @ np.swapaxes(R[:, 0], -1, -2), covered[:, 0])
-    return {"images": images, "K": K, "R_cam_crop": R, "box": np.where(present[..., None], boxes, np.nan).astype(np.float32), "flow": tokens}
+    for side, arrays in out.items():
+        K, R = arrays["K"], arrays["R_cam_crop"]
+        arrays["box"] = np.where(present[side][..., None], boxes[side], np.nan).astype(np.float32)
+        arrays["flow"] = flow.clip_flow_tokens(arrays["images"][:, 0], K[:, 0] @ np.swapaxes(R[:, 0], -1, -2), covered[side][:, 0])
+    return out
 
 
 def _frames(clip_dir: pathlib.Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -221,13 +242,13 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
             rig = StereoRig.from_json(clip_dir / "rig.json")
         except ValueError as err:
             raise clips.ClipFormatError(str(err)) from err
-        hands = {}
+        boxes, hands = {}, {}
         for side in clips.SIDES:
-            boxes, counts = hand_crop_boxes(clip_dir, side, rig, cfg, labels)
-            if counts["none"] == boxes.shape[0] * 2:  # no evidence of this hand anywhere
-                continue
-            clips.save_crops(clips.crops_file(clip_dir, side), **render_crops(_frames(clip_dir), rig, boxes, cfg))
-            hands[side] = counts
+            boxes[side], counts = hand_crop_boxes(clip_dir, side, rig, cfg, labels)
+            if counts["none"] < boxes[side].shape[0] * 2:  # some evidence of this hand
+                hands[side] = counts
+        for side, arrays in render_crops(_frames(clip_dir), rig, {side: boxes[side] for side in hands}, cfg).items():
+            clips.save_crops(clips.crops_file(clip_dir, side), **arrays)
         for side in set(made_elsewhere) - set(hands):  # replaced crops of a hand with no evidence now: not left behind
             clips.crops_file(clip_dir, side).unlink()
         record = {"settings": settings, "hands": hands}
