@@ -27,13 +27,16 @@ from ..files import check_out_dir, exclusive_lock, read_json, remove_stale_parti
 from . import detector, flow, motion, render
 
 CROP_SIZE = 224
-ENGINE_REVISION = 3
+ENGINE_REVISION = 4
 """Incremented when the engine makes other clips from the same settings and seed (motion,
 built-in hand, renderer); `synth.json` records it, and a record without it was made at
 revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' contacts
 (`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2). Revision 3: crop
 pixels beyond the source image are black (the renderer drew the scene there, which no
-camera records and a crop cut from a recording, `esther crops`, never shows)."""
+camera records and a crop cut from a recording, `esther crops`, never shows). Revision 4:
+so are crop pixels whose rays the source camera cannot see, beyond a fisheye's field of
+view (`max_angle`) or behind it (`crops.rectification_map`; fisheye rigs and hc crops
+only: the esther rig's offbb crops are unchanged)."""
 
 
 @dataclasses.dataclass(frozen=True)
