@@ -361,7 +361,8 @@ def _crops(args) -> int:
     for failure in result["failed"]:
         print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
     hands = sum(len(r["hands"]) for r in result["cropped"])
-    print(f"cropped {hands} hands of {len(result['cropped'])} clips ({args.size} px, {args.strategy}), failed {len(result['failed'])}")
+    print(f"cropped {hands} hands of {len(result['cropped'])} clips ({args.size} px, {args.strategy}), "
+          f"{len(result['skipped'])} already done, failed {len(result['failed'])}")
     return 1 if result["failed"] else 0
 
 

@@ -88,6 +88,8 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
             raise ClipFormatError(f"{path}: {key} must hold numbers, got dtype {arrays[key].dtype}")
         if arrays[key].dtype.kind == "f" and key not in _NAN_ALLOWED.get(kind, ()) and not np.all(np.isfinite(arrays[key])):
             raise ClipFormatError(f"{path}: {key} contains NaN or infinite values")
+    if sizes.get("D") == 0:
+        raise ClipFormatError(f"{path}: holds no detector (D = 0); a keypoints file has one or more")
     for key in _UNIT_INTERVAL.get(kind, ()):
         values = arrays[key][np.isfinite(arrays[key])] if arrays[key].dtype.kind == "f" else arrays[key]
         outside = (values < 0) | (values > 1)

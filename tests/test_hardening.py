@@ -153,6 +153,7 @@ def test_npz_contents_are_validated(tmp_path):
         "complex conf": (dict(conf=good["conf"].astype(complex)), "conf must hold numbers"),
         "NaN conf": (dict(conf=np.full_like(good["conf"], np.nan)), "conf contains NaN"),
         "frames disagree": (dict(conf=good["conf"][:, :-1]), "T is"),
+        "no detector": ({k: v[:0] for k, v in good.items()}, r"holds no detector \(D = 0\)"),
     }
     for case, (change, message) in cases.items():
         clips.save_npz(path, **{**good, **change})

@@ -55,7 +55,7 @@ def test_crops_cut_from_the_views_are_the_rendered_crops(rendered):
         assert np.abs(cut["flow"] - ref["flow"]).max() < 0.1
 
 
-def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
+def test_esther_crops_on_a_clip_folder(rendered, tmp_path, capsys):
     """The command cuts the crops around the projected ground truth, records how, skips a
     clip already done, keeps esther synth's crops unless told, and the training loader
     reads what it wrote."""
@@ -70,8 +70,10 @@ def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
     assert sorted(record["hands"]) == sorted(clip.crops)
     for side, counts in record["hands"].items():
         gt = clips.load_npz(clips.hand_file(work, side, "gt"), "gt")
-        cams = np.asarray(StereoRig.from_json(work / "rig.json").to_views(gt["joints"]))  # (2, T, 21, 3)
-        ahead = (cams[..., 2] > 1e-2).all(axis=-1) & gt["onscreen"]  # the frame-views the projected hand frames
+        rig = StereoRig.from_json(work / "rig.json")
+        cams = np.asarray(rig.to_views(gt["joints"]))  # (2, T, 21, 3)
+        seen = np.asarray(rig.is_visible(gt["joints"])).any(axis=-1)  # (2, T): the view sees some joint
+        ahead = (cams[..., 2] > 1e-2).all(axis=-1) & gt["onscreen"] & seen  # the frame-views the projected hand frames
         assert counts["joints"] == int(ahead.sum()) > 0 and sum(counts.values()) == 12
         cut = dict(np.load(work / "crops" / f"{side}.npz"))
         assert cut["images"].shape == (6, 2, SIZE, SIZE, 3) and cut["flow"].shape == (6, 192)
@@ -82,9 +84,12 @@ def test_esther_crops_on_a_clip_folder(rendered, tmp_path):
         shown = inside & ahead.T
         assert shown.any() and np.all((uv[shown] > -1) & (uv[shown] < SIZE))
     stamp = (work / "crops" / "right.npz").stat().st_mtime_ns
+    capsys.readouterr()
     assert cli.main(["crops", str(work), "--size", str(SIZE)]) == 0  # done: skipped
     assert (work / "crops" / "right.npz").stat().st_mtime_ns == stamp
+    assert "cropped 0 hands of 0 clips (64 px, offbb120), 1 already done" in capsys.readouterr().out
     assert cli.main(["crops", str(work), "--size", "32"]) == 1  # other settings: kept unless --overwrite
+    assert "esther crops --overwrite" in capsys.readouterr().err
     windows = train_data.build_index([work], train_data.DataConfig(frames=4, stride=2, crop_size=SIZE))
     example, targets = train_data.load_example(windows[0], train_data.DataConfig(frames=4, stride=2, crop_size=SIZE))
     assert example.images.shape == (4, 2, 3, SIZE, SIZE) and np.all(np.isfinite(np.asarray(example.K)))
@@ -105,6 +110,28 @@ def test_crops_of_a_detected_clip_follow_its_keypoints(rendered, tmp_path):
         both = np.isfinite(detected).all(axis=-1) & np.isfinite(projected).all(axis=-1)
         centres = lambda b: (b[both][:, :2] + b[both][:, 2:]) / 2  # noqa: E731
         assert both.any() and np.median(np.abs(centres(detected) - centres(projected))) < 10  # px of 640 x 480
+
+
+def test_crops_are_cut_again_when_their_evidence_changes(rendered, tmp_path):
+    """Crops cut before a hand's labels existed (windows from gt.npz) are cut again from
+    the labels once they arrive, without --overwrite (same settings, other evidence)."""
+    _, folder = rendered
+    work = shutil.copytree(folder, tmp_path / "clip")
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    first = vc.crop_clip(work, vc.CropConfig(size=SIZE), labels=labels, overwrite=True)
+    before = clips.load_crops(clips.crops_file(work, "right"))["box"]
+    assert vc.crop_clip(work, vc.CropConfig(size=SIZE), labels=labels) == first  # nothing changed: skipped
+    gt = clips.load_npz(clips.hand_file(work, "right", "gt"), "gt")
+    moved = gt["joints"] + np.array([0.03, 0.0, 0.0])  # the labelled hand 3 cm to the side of the ground truth's
+    clips.hand_file(labels / work.name, "right", "labels").parent.mkdir(parents=True)
+    clips.save_npz(clips.hand_file(labels / work.name, "right", "labels"), **{**gt, "joints": moved, "valid": gt["onscreen"],
+                                                                             "residual_px": np.zeros(len(moved))})  # fmt: skip
+    again = vc.crop_clip(work, vc.CropConfig(size=SIZE), labels=labels)
+    assert again["evidence"]["right"].keys() == {"labels", "gt", "keypoints"} and again["evidence"]["left"] == first["evidence"]["left"]
+    after = clips.load_crops(clips.crops_file(work, "right"))["box"]
+    shown = np.isfinite(before).all(axis=-1) & np.isfinite(after).all(axis=-1)
+    assert shown.any() and np.all(np.abs(after[shown] - before[shown]).max(axis=-1) > 1.0)  # the windows follow the labels
 
 
 def test_esther_crops_says_what_is_missing(rendered, tmp_path, capsys):

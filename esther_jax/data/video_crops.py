@@ -16,9 +16,9 @@ Gaps of at most `CropConfig.max_gap` frames between boxes are filled linearly, t
 boxes are smoothed (`crops.smooth_boxes`). A frame and view left without a box has no
 crop: black pixels and a NaN box, so the network takes the view as absent (its crop
 camera is held from the nearest frame with a box: finite geometry for a masked view).
-`meta.json` records how the crops were made (`"crops"`); a clip whose record matches is
-skipped, so an interrupted run resumes, and a lock per clip lets two runs share a
-folder.
+`meta.json` records how the crops were made (`"crops"`: the settings and the digests of
+the files the windows came from); a clip whose record matches is skipped, so an
+interrupted run resumes, and a lock per clip lets two runs share a folder.
 """
 
 import dataclasses
@@ -35,7 +35,7 @@ from tqdm import tqdm
 from .. import clips
 from .. import crops as crop_lib
 from ..cameras import AbstractCamera, StereoRig
-from ..files import exclusive_lock
+from ..files import exclusive_lock, file_sha256
 from . import flow
 
 CHUNK_FRAMES = 32
@@ -62,11 +62,14 @@ class CropConfig:
 
 def joint_boxes(rig: StereoRig, joints: Float[np.ndarray, "T 21 3"], valid: np.ndarray) -> Float[np.ndarray, "T 2 4"]:
     """Per frame and view the `crops.hand_box` of the joints (rig frame, m) projected into
-    the view; NaN where the frame is not `valid` or a joint is not in front of the camera."""
+    the view; NaN where the frame is not `valid`, a joint is not in front of the camera,
+    or the view sees none of the joints (`StereoRig.is_visible`: the training loader's
+    absent view)."""
     joints = jnp.asarray(np.nan_to_num(np.asarray(joints, np.float64)), jnp.result_type(float))
     uv = np.asarray(rig.project(joints), np.float64)  # (2, T, 21, 2)
     ahead = np.all(np.asarray(rig.to_views(joints))[..., 2] > 1e-2, axis=-1)  # (2, T): every joint 1 cm or more ahead
-    shown = np.asarray(valid, bool) & ahead & np.all(np.isfinite(uv), axis=(-1, -2))
+    seen = np.any(np.asarray(rig.is_visible(joints)), axis=-1)  # (2, T)
+    shown = np.asarray(valid, bool) & ahead & seen & np.all(np.isfinite(uv), axis=(-1, -2))
     return np.where(shown[..., None], crop_lib.hand_box(uv), np.nan).swapaxes(0, 1)
 
 
@@ -217,24 +220,43 @@ def _frames(clip_dir: pathlib.Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     return zip(*(clips.iter_video(clip_dir / "video" / f"{view}.mp4") for view in ("left", "right")))
 
 
+def _evidence(clip_dir: pathlib.Path, labels: str | pathlib.Path | None) -> dict[str, dict[str, str]]:
+    """Per hand, the sha256 of each file its crop windows can come from (its labels in
+    `labels`, `gt.npz`, `keypoints.npz`) that exists now: crops are cut again when one
+    changes (labels that arrived after the crops, detection run again)."""
+    files = {side: {"labels": None if labels is None else clips.hand_file(pathlib.Path(labels) / clip_dir.name, side, "labels"),
+                    "gt": clips.hand_file(clip_dir, side, "gt"), "keypoints": clips.hand_file(clip_dir, side, "keypoints")}
+             for side in clips.SIDES}  # fmt: skip
+    return {side: {kind: file_sha256(path) for kind, path in kinds.items() if path is not None and path.is_file()} for side, kinds in files.items()}
+
+
 def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, labels: str | pathlib.Path | None = None,
               overwrite: bool = False) -> dict:  # fmt: skip
     """Write `crops/<side>.npz` of every hand of a clip folder with a target or keypoints,
     from its `video/left.mp4` and `video/right.mp4`, and record how in `meta.json`
     (`"crops"`). Skipped (returns the record) when the clip's record already says these
-    settings; crops made otherwise (by `esther synth`, or with other settings) are kept
-    unless `overwrite`. Returns the record: the settings and per hand the frame-views
-    whose boxes came from each source."""
-    clip_dir = pathlib.Path(clip_dir)
+    settings and the files the windows come from are unchanged (their digests: labels
+    that arrive later, a new detection, are taken up); crops made otherwise (by `esther
+    synth`, or with other settings) are kept unless `overwrite`. Returns the record: the
+    settings, the evidence digests and per hand the frame-views whose boxes came from each
+    source."""
+    return _crop_clip(pathlib.Path(clip_dir), cfg, labels, overwrite)[0]
+
+
+def _crop_clip(clip_dir: pathlib.Path, cfg: CropConfig, labels: str | pathlib.Path | None, overwrite: bool) -> tuple[dict, bool]:
+    """`crop_clip`'s record, and whether it cut the crops (False: skipped, already done)."""
     settings = {**dataclasses.asdict(cfg), "labels": None if labels is None else str(pathlib.Path(labels).resolve())}
     with exclusive_lock(clip_dir / ".crops.lock"):
         meta = clips.read_meta(clip_dir)
         done = meta.get("crops")
-        if done is not None and done.get("settings") == settings and all(clips.crops_file(clip_dir, s).is_file() for s in done["hands"]):
-            return done
+        evidence = _evidence(clip_dir, labels)
+        same_settings = done is not None and done.get("settings") == settings
+        if same_settings and done.get("evidence") == evidence and all(clips.crops_file(clip_dir, s).is_file() for s in done["hands"]):
+            return done, False
         made_elsewhere = [s for s in clips.SIDES if clips.crops_file(clip_dir, s).is_file()]
-        if made_elsewhere and not overwrite and (done is not None or "crop_strategy" in meta):
-            raise ValueError(f"{clip_dir} has crops made {'with other settings' if done else 'by esther synth'}; pass overwrite to replace them")
+        if made_elsewhere and not overwrite and not same_settings and (done is not None or "crop_strategy" in meta):
+            raise ValueError(f"{clip_dir} has crops made {'with other settings' if done else 'by esther synth'}; "
+                             "overwrite them to replace them (esther crops --overwrite)")  # fmt: skip
         for view in ("left", "right"):
             if not (clip_dir / "video" / f"{view}.mp4").is_file():
                 raise clips.ClipFormatError(f"{clip_dir} has no video/{view}.mp4: crops are cut from the clip's videos")
@@ -251,25 +273,27 @@ def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, l
             clips.save_crops(clips.crops_file(clip_dir, side), **arrays)
         for side in set(made_elsewhere) - set(hands):  # replaced crops of a hand with no evidence now: not left behind
             clips.crops_file(clip_dir, side).unlink()
-        record = {"settings": settings, "hands": hands}
+        record = {"settings": settings, "evidence": evidence, "hands": hands}
         meta = {k: v for k, v in clips.read_meta(clip_dir).items() if k != "crop_strategy"}  # esther synth's, of the crops replaced
         clips.write_meta(clip_dir, **{**meta, "crops": record})
-    return record
+    return record, True
 
 
 def crop_clips(clip_dirs: list[str | pathlib.Path], cfg: CropConfig = CropConfig(), *, labels: str | pathlib.Path | None = None,
                overwrite: bool = False, progress: bool = True) -> dict:  # fmt: skip
     """`crop_clip` for every clip folder, with a progress bar; a clip that fails is
-    reported and the others go on. Returns {'cropped': [records], 'failed': [{clip, error}]}."""
+    reported and the others go on. Returns {'cropped': [records], 'skipped': [records of
+    clips already done], 'failed': [{clip, error}]}."""
     if labels is not None and not pathlib.Path(labels).is_dir():
         raise ValueError(f"the labels folder {labels} does not exist (esther label --out)")
-    done, failed = [], []
+    result: dict[str, list] = {"cropped": [], "skipped": [], "failed": []}
     for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="crops", unit="clip", disable=not progress):
         try:
-            done.append({"clip": str(clip), **crop_clip(clip, cfg, labels=labels, overwrite=overwrite)})
+            record, cut = _crop_clip(clip, cfg, labels, overwrite)
+            result["cropped" if cut else "skipped"].append({"clip": str(clip), **record})
         except (OSError, ValueError) as err:
-            failed.append({"clip": str(clip), "error": str(err)})
-    return {"cropped": done, "failed": failed}
+            result["failed"].append({"clip": str(clip), "error": str(err)})
+    return result
 
 
 __all__ = ["CHUNK_FRAMES", "CropConfig", "crop_clip", "crop_clips", "fill_gaps", "hand_crop_boxes", "joint_boxes", "keypoint_boxes", "render_crops"]
