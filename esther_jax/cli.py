@@ -127,8 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
     predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
     args = parser.parse_args(argv)
-    try:  # before minutes of work: the output folder (every command but crops, which writes into its clips) must be a writable folder
-        if args.command != "crops":
+    try:  # before minutes of work: the output folder must be a writable folder (crops writes into its clips; train
+        # creates and locks its run folder at once, and removes it again when the run fails to start)
+        if args.command not in ("crops", "train"):
             check_out_dir(args.out)
     except ValueError as err:
         print(f"esther {args.command}: {err}", file=sys.stderr)
@@ -339,7 +340,11 @@ def _train(args) -> int:
     except (OSError, ValueError) as err:  # bad configs, folders, a run that exists, a mismatched resume
         print(f"esther train: {err}", file=sys.stderr)
         return 2
-    print(f"trained {summary['steps']} steps (from step {summary['resumed_from']}) in {summary['seconds']:.0f} s -> {summary['model']}")
+    if summary["steps"] == summary["resumed_from"]:
+        print(f"{args.out} was already trained to step {summary['steps']}: nothing to train -> {summary['model']}")
+    else:
+        fresh = " (no checkpoint to resume: from the start)" if args.resume and summary["resumed_from"] == 0 else ""
+        print(f"trained {summary['steps']} steps (from step {summary['resumed_from']}){fresh} in {summary['seconds']:.0f} s -> {summary['model']}")
     for views, scores in summary.get("validation", {}).items():
         shown = ", ".join(f"{k} {v:.1f}" if v is not None else f"{k} n/a" for k, v in scores.items() if k.endswith(("_mm", "_px")))
         print(f"validation ({views}, {scores['windows']} windows): {shown}, on-screen F1 {scores['onscreen_f1']:.2f}")

@@ -123,6 +123,11 @@ def test_evaluate_folders_end_to_end(tmp_path):
     for name in ("table.md", "table.csv", "depth_scatter.png", "pck.png"):
         assert (tmp_path / "out" / name).stat().st_size > 100
     assert "P-MPJPE" in (tmp_path / "out" / "table.md").read_text()
+    with pytest.raises(ValueError, match="predictions folder .*nowhere does not exist"):
+        ev.evaluate_folders(tmp_path / "nowhere", gt_root, tmp_path / "out2")
+    clips.hand_file(gt_root / "unlabelled", "right", "gt").unlink()
+    with pytest.raises(ValueError, match="hold no ground truth"):  # clips of esther detect: nothing to score against
+        ev.evaluate_folders(pred_root, gt_root / "unlabelled", tmp_path / "out2")
 
 
 def test_evaluate_a_prediction_that_emits_nothing(tmp_path, capsys):

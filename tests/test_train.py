@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from esther_jax import mano, metrics
+from esther_jax.files import exclusive_lock
 from esther_jax import model as M
 from esther_jax import train
 from esther_jax.cameras import rig_preset
@@ -423,8 +424,17 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     assert all(r["windows"] == 2 and r["p_mpjpe_mm"] > 0 and r["keypoints_2d_px"] > 0 and 0 <= r["onscreen_f1"] <= 1 for r in rows)
     assert (run / "curves.png").stat().st_size > 10_000
     assert cli.main(args) == 2 and "already holds a run" in capsys.readouterr().err
+    assert cli.main(args + ["--resume"]) == 0 and "already trained to step 4: nothing to train" in capsys.readouterr().out
+    longer = [*args[: args.index("--steps") + 1], "6", *args[args.index("--steps") + 2 :], "--resume"]
+    assert cli.main(longer) == 2
+    assert "train.steps was 4, now 6" in (err := capsys.readouterr().err) and "--init" in err
+    with exclusive_lock(run / ".train.lock"):  # another process training into it
+        assert cli.main(args + ["--resume"]) == 2 and "being trained by another process" in capsys.readouterr().err
     stage2 = [a if a != str(run) else str(tmp_path / "run2") for a in args] + ["--init", str(run), "--triangulated-wrist-input"]
     assert cli.main(stage2) == 2 and "triangulated_wrist_input False vs True" in capsys.readouterr().err
+    assert not (tmp_path / "run2").exists()  # a run that never started leaves no folder
+    no_labels = [a if a != str(run) else str(tmp_path / "run3") for a in args] + ["--targets", "labels", "--labels", str(tmp_path / "nolabels")]
+    assert cli.main(no_labels) == 2 and "nolabels does not exist" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
     labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
     assert labels["right"]["joints"].shape == (8, 21, 3) and labels["left"]["valid"].dtype == bool

@@ -172,6 +172,8 @@ def evaluate_folders(
     """
     if parameters not in PARAMETER_MODES:
         raise ValueError(f"parameters must be one of {PARAMETER_MODES}, got {parameters!r}")
+    if not pathlib.Path(pred_root).is_dir():
+        raise ValueError(f"the predictions folder {pred_root} does not exist (esther label --out or esther predict --out)")
     pred_root, out_dir = pathlib.Path(pred_root), check_out_dir(out_dir)
     per_clip, missing, compared, not_compared, unverified = [], [], [], [], []
     all_errors, z_pred, z_gt = [], [], []
@@ -205,6 +207,8 @@ def evaluate_folders(
             z_pred.append(result["wrist_z"][0])
             z_gt.append(result["wrist_z"][1])
     unverified = list(dict.fromkeys(unverified))
+    if not per_clip and not missing:
+        raise ValueError(f"the clips in {gt_root} hold no ground truth (hands/<side>/gt.npz): there is nothing to score against")
     if not per_clip:
         raise ValueError(f"no prediction in {pred_root} matches a ground-truth hand in {gt_root} (missing: {missing[:5]})")
 

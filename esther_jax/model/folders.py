@@ -104,7 +104,7 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
             rig = StereoRig.from_json(clip / "rig.json")
             sides = [s for s in clips.SIDES if clips.crops_file(clip, s).is_file()]
             if not sides:
-                raise clips.ClipFormatError(f"{clip} has no crops/<side>.npz (esther synth --crops, or your crops)")
+                raise clips.ClipFormatError(f"{clip} has no crops/<side>.npz (esther crops cuts them from its videos; esther synth --crops renders them)")
             with exclusive_lock(out_dir / f".{clip.name}.lock"):
                 remove_stale_partials(out_dir, clip.name)
                 tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{clip.name}.partial-", dir=out_dir))

@@ -42,7 +42,7 @@ import optax
 from .. import mano
 from .. import model as M
 from ..eval.reports import plot_learning_curves
-from ..files import atomic_output, file_sha256, git_revision, read_json, write_json
+from ..files import atomic_output, exclusive_lock, file_sha256, git_revision, read_json, write_json
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine
 from .masking import AugmentRates, MaskingRates, corrupt, example_key
@@ -345,14 +345,49 @@ def train(
             `jax.distributed.initialize()`), none with one. In a multi-process run every
             process loads its share of each batch and process 0 alone writes the run
             folder (a filesystem all processes see).
+
+    A second process training into `run` while one does is refused (a lock in the run
+    folder, `.train.lock`), and a run that fails before it starts leaves no folder.
     """
+    run = pathlib.Path(run)
+    args = (run, clip_dirs, model_cfg, cfg, data_cfg, val_dirs, init, resume, progress, log_every, mesh, backbone_weights)
+    if jax.process_index() != 0:  # process 0 alone writes the run folder and holds its lock
+        return _train_run(*args)
+    fresh = not run.exists()
+    run.mkdir(parents=True, exist_ok=True)
+    try:
+        with exclusive_lock(run / ".train.lock", wait=False) as held:
+            if not held:
+                raise ValueError(f"{run} is being trained by another process: wait for it to end, or choose another --out")
+            return _train_run(*args)
+    finally:
+        if fresh and not (run / "config.json").exists():  # the run never started: no empty folder left behind
+            shutil.rmtree(run, ignore_errors=True)
+
+
+def _train_run(
+    run: pathlib.Path,
+    clip_dirs: list[str | pathlib.Path],
+    model_cfg: M.ModelConfig,
+    cfg: TrainConfig,
+    data_cfg: data_lib.DataConfig | None,
+    val_dirs: list[str | pathlib.Path] | None,
+    init: str | pathlib.Path | None,
+    resume: bool,
+    progress: bool,
+    log_every: int,
+    mesh: jax.sharding.Mesh | None,
+    backbone_weights: str | pathlib.Path | None,
+) -> dict:
+    """`train`'s body, the run folder's lock held."""
     from tqdm import tqdm
 
-    run = pathlib.Path(run)
     data_cfg = data_cfg or data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
     if data_cfg.frames > model_cfg.num_frames or data_cfg.crop_size != model_cfg.crop_size:
         raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
                          f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
+    if data_cfg.targets == "labels" and not pathlib.Path(data_cfg.labels).is_dir():
+        raise ValueError(f"the labels folder {data_cfg.labels} does not exist (esther label --out)")
     record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
     if backbone_weights is not None:
         if init is not None:
@@ -365,19 +400,20 @@ def train(
         if not resume:
             raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
         previous = read_json(config_path)
-        for part in ("model", "train", "data"):
-            if previous.get(part) != json.loads(json.dumps(record[part])):
-                raise ValueError(f"{run} was started with another {part} config: resume with the same settings")
+        differs = [f"{part}.{key} was {previous.get(part, {}).get(key)!r}, now {value!r}"
+                   for part in ("model", "train", "data") for key, value in json.loads(json.dumps(record[part])).items()
+                   if previous.get(part, {}).get(key) != value]  # fmt: skip
+        if differs:
+            hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if any(d.startswith("train.steps") for d in differs) else ""
+            raise ValueError(f"{run} was started with other settings ({'; '.join(differs)}): resume with the same settings{hint}")
         windows, _ = data_lib.load_index(index_path)
+        new_run = False
     else:
         windows = data_lib.build_index(clip_dirs, data_cfg)
         if not windows:
             raise ValueError(f"no training window in {len(clip_dirs)} clip folders (need crops/<side>.npz and targets, "
                              f"at least {data_cfg.frames} frames)")  # fmt: skip
-        if main:
-            run.mkdir(parents=True, exist_ok=True)
-            data_lib.save_index(index_path, windows, data_cfg)
-            write_json(config_path, record)
+        new_run = True
 
     hand = mano.load_builtin("right")
     net = M.ESTHER(model_cfg, key=jax.random.key(cfg.seed))
@@ -397,6 +433,10 @@ def train(
         precompute_features(net.backbone, list(clip_dirs) + list(val_dirs or []), model_cfg.crop_size, data_cfg.features, progress=progress and main)
     trainer = Trainer(net, cfg, hand, mesh=mesh)
     state = trainer.init()
+    if new_run and main:  # written once every setting is checked: a run that fails to set up can be started again
+        run.mkdir(parents=True, exist_ok=True)
+        data_lib.save_index(index_path, windows, data_cfg)
+        write_json(config_path, record)
     restored = load_checkpoint(run, _host(state)) if resume else None
     if restored is not None:
         state = trainer.place(restored)
@@ -418,6 +458,7 @@ def train(
 
     t0, last = time.perf_counter(), time.perf_counter()
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not (progress and main))
+    bar.set_postfix_str("compiling the step (the first one waits for it)")
     # The batch of the next step is read on a worker thread while the current step runs.
     logs = (open(metrics_path, "a"), open(val_path, "a")) if main else (open(os.devnull, "w"), open(os.devnull, "w"))
     with logs[0] as log, logs[1] as val_log, ThreadPoolExecutor(1) as loader:
