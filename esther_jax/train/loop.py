@@ -404,7 +404,8 @@ def _train_run(
                    for part in ("model", "train", "data") for key, value in json.loads(json.dumps(record[part])).items()
                    if previous.get(part, {}).get(key) != value]  # fmt: skip
         if differs:
-            hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if any(d.startswith("train.steps") for d in differs) else ""
+            steps = any(d.startswith("train.steps") for d in differs)
+            hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if steps else ""
             raise ValueError(f"{run} was started with other settings ({'; '.join(differs)}): resume with the same settings{hint}")
         windows, _ = data_lib.load_index(index_path)
         new_run = False
