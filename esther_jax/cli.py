@@ -239,8 +239,22 @@ def _label(args) -> int:
         f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames, {rate:.0f} hand-frames/s), "
         f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
     )
-    write_json(pathlib.Path(args.out) / "label_summary.json", result)
+    _write_label_summary(pathlib.Path(args.out), result)
     return 1 if result["failed"] else 0
+
+
+def _write_label_summary(out: pathlib.Path, result: dict) -> None:
+    """`out/label_summary.json`: this run's result, with the earlier runs' entries of the
+    clips it skipped (done before: a resumed run keeps their per-hand notes); under a lock,
+    as two runs may label into one folder."""
+    from .files import exclusive_lock, read_json
+
+    path = out / "label_summary.json"
+    with exclusive_lock(out / ".label_summary.lock"):
+        earlier = read_json(path).get("labelled", []) if path.is_file() else []
+        now = {entry["clip"] for entry in result["labelled"]}
+        kept = [entry for entry in earlier if entry.get("clip") in set(result["skipped"]) - now]
+        write_json(path, {**result, "labelled": kept + result["labelled"]})
 
 
 def _detect(args) -> int:

@@ -411,8 +411,11 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
     q = json.loads((out / "c0" / "hands" / "right" / "quality.json").read_text(), parse_constant=pytest.fail)  # strict JSON
     assert q["human_rejected_frames"] == [3]
     stamp = (out / "c0" / "meta.json").stat().st_mtime_ns
+    first = json.loads((out / "label_summary.json").read_text())["labelled"]
     assert cli.main(["label", str(folder), "--out", str(out), "--resume"]) == 0
     assert (out / "c0" / "meta.json").stat().st_mtime_ns == stamp and "skipped 1" in capsys.readouterr().out
+    summary = json.loads((out / "label_summary.json").read_text())
+    assert summary["skipped"] == ["c0"] and summary["labelled"] == first  # the resumed run keeps the first run's notes
     (tmp_path / "bad.txt").write_text("c0;right;3\n")
     assert cli.main(["label", str(folder), "--out", str(out), "--reject", str(tmp_path / "bad.txt")]) == 2
     assert (out / "c0" / "hands" / "right" / "review.png").exists() or labels["valid"][labels["onscreen"]].all()
