@@ -115,6 +115,26 @@ def test_assign_hands_uses_geometry_over_wrong_labels(two_hands, rig_name):
     assert {t["evidence_side"] for t in report["tracks"]} == {"right", "left"}
 
 
+def test_a_hand_glimpsed_in_one_frame_is_not_a_hand(two_hands):
+    """A one-frame detection in one view (a spurious hand, far from both real ones) makes a
+    track of its own; it is dropped, not given the free side of a one-handed clip."""
+    rig = cameras.rig_preset("esther")
+    c = Candidates.empty(FRAMES, 2)
+    for view in (0, 1):
+        detector = GroundTruthDetector({"right": two_hands["right"]}, rig, view, [], rectified=False)
+        for t in range(FRAMES):
+            found = detector.detect(None, t / 30)
+            if view == 0 and t == 3:
+                uv = np.stack([np.linspace(30, 90, 21), np.linspace(40, 120, 21)], -1)
+                found.append(HandDetection(uv, np.ones(21), keypoint_box(uv, np.ones(21)), 0.8, label=1, label_score=0.9))
+            c.put(t, view, found)
+    hands, report = assign_hands(c, rig)
+    assert set(hands) == {"right"}
+    glimpse = next(t for t in report["tracks"] if t["observations"] == 1)
+    assert glimpse["side"] == "dropped" and glimpse["dropped"] == "fewer than 3 frames"
+    assert set(assign_hands(c, rig, min_observations=1)[0]) == {"right", "left"}  # kept, it would be the 'left' hand
+
+
 @pytest.mark.parametrize("rig_name", ["esther", "hot3d_quest3", "mixed"])
 def test_detect_clip_writes_a_clip_the_teacher_reads(tmp_path, two_hands, rig_name):
     rig = mixed_rig() if rig_name == "mixed" else cameras.rig_preset(rig_name)

@@ -20,9 +20,12 @@ changed between versions), so `assign_hands` decides by evidence, in four steps:
    (`LABEL_WEIGHT` x its score: a tie-breaker). A track's side is the sign of the sum. With no
    evidence at all, a track in the right half of its image is the right hand (the
    egocentric prior, a last resort).
-4. **One hand per side.** Tracks are given their side strongest evidence first; a track
-   that overlaps in time with a track already holding its side takes the other side if
-   free during its frames, and is dropped otherwise (reported).
+4. **One hand per side.** Tracks of fewer than `min_observations` frames (a hand glimpsed
+   once or twice: mostly a spurious detection, or a detection of a hand that failed to
+   link) are dropped, as a tracker confirms a track only after a few hits. The others are
+   given their side strongest evidence first; a track that overlaps in time with a track
+   already holding its side takes the other side if free during its frames, and is
+   dropped otherwise. The report says which tracks were dropped and why.
 """
 
 import dataclasses
@@ -110,12 +113,15 @@ def assign_hands(
     pair_tolerance: float = 0.1,
     link_tolerance: float = 0.5,
     max_gap: int = 5,
+    min_observations: int = 3,
 ) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
     """Left/right hands from one detector's candidates (see the module docstring).
 
     Returns `({side: {"uv" [T,2,21,2], "conf" [T,2,21], "box" [T,2,4], "box_score" [T,2]}},
     report)`: the keypoints.npz arrays of each side found (without the detector axis),
-    and a report of the tracks (side, frames, evidence, stereo observations, dropped).
+    and a report of the tracks (side, frames, evidence, stereo observations; a dropped
+    track's `dropped` says why). A clip shorter than `min_observations` frames needs a
+    track in every frame.
     """
     T, V, H = c.score.shape
     cost, points = _stereo_pairs(c, rig, pair_tolerance)
@@ -179,13 +185,15 @@ def assign_hands(
         evidence = track.evidence
         preferred = int(np.sign(evidence)) if evidence != 0 else prior_side(track)
         frames = track.frames
-        side = next((s for s in (preferred, -preferred) if not frames & taken[s]), 0)
+        short = len(track.observations) < min(min_observations, T)
+        side = 0 if short else next((s for s in (preferred, -preferred) if not frames & taken[s]), 0)
         report_tracks.append({
             "side": {1: "right", -1: "left", 0: "dropped"}[side], "first_frame": min(frames), "last_frame": max(frames),
             "observations": len(track.observations), "stereo_observations": sum(o.stereo for o in track.observations),
             "evidence": evidence, "evidence_side": {1: "right", -1: "left"}[preferred] if evidence != 0 else "none (image position)",
         })  # fmt: skip
         if side == 0:
+            report_tracks[-1]["dropped"] = f"fewer than {min_observations} frames" if short else "both sides held during its frames"
             continue
         taken[side] |= frames
         for o in track.observations:
