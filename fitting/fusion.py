@@ -33,15 +33,19 @@ class Fused(eqx.Module):
     box_side: Float[Array, "frames 2"]
     """Hand-box side w_b (pixels) per view (0 when no detector boxed the hand)."""
     num_invalid: Float[Array, ""]
-    """Detections discarded because their pixels or confidences were NaN or infinite."""
+    """Keypoints discarded because their pixels or confidences were NaN or infinite while
+    their confidence said they were detected (`sanitise`)."""
 
 
 def sanitise(
     uv: Float[Array, "*batch 2"], conf: Float[Array, "*batch"]
 ) -> tuple[Float[Array, "*batch 2"], Float[Array, "*batch"], Float[Array, ""]]:
-    """NaN / infinite keypoints or confidences become 'not observed' (conf 0); returns the count."""
+    """NaN / infinite keypoints or confidences become 'not observed' (conf 0); returns the
+    count of the contradictory ones: a non-finite confidence, or a non-finite keypoint with
+    a confidence above 0 (a NaN keypoint of confidence 0 is the clip format's "not
+    detected", not counted)."""
     bad = ~(jnp.all(jnp.isfinite(uv), axis=-1) & jnp.isfinite(conf))
-    count = jnp.sum(bad).astype(conf.dtype)
+    count = jnp.sum(bad & (conf != 0)).astype(conf.dtype)
     return jnp.where(bad[..., None], 0.0, uv), jnp.where(bad, 0.0, jnp.clip(conf, 0.0, 1.0)), count
 
 

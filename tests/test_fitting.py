@@ -45,6 +45,9 @@ def test_fusion_follows_appendix_a():
     f = fusion.fuse(uv.at[0, 0, 0, 3].set(jnp.nan), conf, box, score)
     assert float(f.num_invalid) == 1 and np.all(np.isfinite(np.asarray(f.uv)))
     np.testing.assert_allclose(np.asarray(f.uv[0, 0, 3]), b)
+    f = fusion.fuse(uv.at[0, 0, 0, 3].set(jnp.nan), conf.at[0, 0, 0, 3].set(0.0), box, score)  # the format's "not detected"
+    assert float(f.num_invalid) == 0
+    np.testing.assert_allclose(np.asarray(f.uv[0, 0, 3]), b)
 
 
 def test_prefilter_rejects_implausible_depths_and_isolated_bones():
