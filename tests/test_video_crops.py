@@ -77,12 +77,15 @@ def test_esther_crops_on_a_clip_folder(rendered, tmp_path, capsys):
         assert counts["joints"] == int(ahead.sum()) > 0 and sum(counts.values()) == 12
         cut = dict(np.load(work / "crops" / f"{side}.npz"))
         assert cut["images"].shape == (6, 2, SIZE, SIZE, 3) and cut["flow"].shape == (6, 192)
-        # the ground-truth joints project inside their crops (the window follows the hand)
+        # every ground-truth joint the view sees projects inside its crop (the window follows
+        # the hand), boxes reaching past the image and the fisheye's field included
         rays = np.einsum("tvji,vtnj->tvni", cut["R_cam_crop"], cams)  # R_cam_crop^T x: the crop camera's frame
         uv = np.einsum("tvij,tvnj->tvni", cut["K"], rays / rays[..., 2:3])[..., :2]
-        inside = (cut["box"][..., :2] >= 0).all(axis=-1) & (cut["box"][..., 2:] < [640, 480]).all(axis=-1)  # boxes within the image
-        shown = inside & ahead.T
-        assert shown.any() and np.all((uv[shown] > -1) & (uv[shown] < SIZE))
+        visible = np.asarray(rig.is_visible(gt["joints"])).transpose(1, 0, 2) & ahead.T[..., None]  # (T, 2, 21)
+        past_edge = ~((cut["box"][..., :2] >= 0).all(axis=-1) & (cut["box"][..., 2:] < [640, 480]).all(axis=-1))
+        assert visible.any() and np.all((uv[visible] > -1) & (uv[visible] < SIZE))
+        if side == "right":
+            assert (past_edge & ahead.T).any()  # the case at hand: this clip's right hand leaves the right view
     stamp = (work / "crops" / "right.npz").stat().st_mtime_ns
     capsys.readouterr()
     assert cli.main(["crops", str(work), "--size", str(SIZE)]) == 0  # done: skipped
