@@ -244,16 +244,17 @@ def _label(args) -> int:
 
 
 def _write_label_summary(out: pathlib.Path, result: dict) -> None:
-    """`out/label_summary.json`: this run's result, with the earlier runs' entries of the
-    clips it skipped (done before: a resumed run keeps their per-hand notes); under a lock,
-    as two runs may label into one folder."""
+    """`out/label_summary.json`: this run's result (its counts and seconds are this run's),
+    its 'labelled' list also keeping the earlier runs' entries of the clips this run did
+    not label or fail (skipped as done, or not in its list: their labels are still in
+    `out`); under a lock, as two runs may label into one folder."""
     from .files import exclusive_lock, read_json
 
     path = out / "label_summary.json"
     with exclusive_lock(out / ".label_summary.lock"):
         earlier = read_json(path).get("labelled", []) if path.is_file() else []
-        now = {entry["clip"] for entry in result["labelled"]}
-        kept = [entry for entry in earlier if entry.get("clip") in set(result["skipped"]) - now]
+        now = {entry["clip"] for entry in result["labelled"]} | {pathlib.Path(f["clip"]).name for f in result["failed"]}
+        kept = [entry for entry in earlier if entry.get("clip") not in now]
         write_json(path, {**result, "labelled": kept + result["labelled"]})
 
 

@@ -212,17 +212,14 @@ def table_coverage(table: Float[np.ndarray, "S S 2"], camera: AbstractCamera) ->
 def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2"]:
     """For every crop pixel, the source-image pixel to sample: `cv2.remap(image,
     map[..., 0], map[..., 1], cv2.INTER_LINEAR)` renders the crop. A crop pixel whose ray
-    the camera cannot see (behind it, or beyond a fisheye's `max_angle`, which `project`
-    would fold back into the image as a mirrored pixel) maps far outside the image: black,
-    and not covered (`table_coverage`)."""
+    points behind the camera (an `hc` crop turned towards the edge of a fisheye's field:
+    `project` folds such a ray back into the image, onto the pixel of its mirror image)
+    maps far outside the image: black, and not covered (`table_coverage`)."""
     S = crop.camera.width
     v, u = jnp.meshgrid(jnp.arange(S, dtype=crop.camera.fx.dtype), jnp.arange(S, dtype=crop.camera.fx.dtype), indexing="ij")
     rays_crop = crop.camera.unproject(jnp.stack([u, v], -1))
     rays_cam = rays_crop @ crop.R_cam_crop.T
-    # seen: in front and in the field of view; the image bounds (widened past the bilinear
-    # footprint) are left to table_coverage and remap's black border
-    seen = camera.is_visible(rays_cam, margin=float(camera.width + camera.height))
-    return jnp.where(seen[..., None], camera.project(rays_cam), -float(camera.width + camera.height))
+    return jnp.where(rays_cam[..., 2:3] > 0, camera.project(rays_cam), -float(camera.width + camera.height))
 
 
 def remap_crop(image: np.ndarray, camera: AbstractCamera, crop: Crop) -> np.ndarray:

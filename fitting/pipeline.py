@@ -316,7 +316,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
     report = quality.label_quality(per_frame, observed, stereo, labels["valid"])
     notes = []
     if out["num_invalid"]:
-        notes.append(f"{int(out['num_invalid'])} keypoints had NaN or infinite values with a confidence above 0 and were treated as missing")
+        notes.append(f"{int(out['num_invalid'])} keypoints had NaN or infinite values but a nonzero confidence and were treated as missing")
     if out["far_outside"]:
         notes.append(f"{out['far_outside']} keypoints lay far outside the image (beyond {FAR_OUTSIDE:g} of its size) and were treated as missing")
     if not observed.any():

@@ -126,7 +126,7 @@ def test_evaluate_folders_end_to_end(tmp_path):
     with pytest.raises(ValueError, match="predictions folder .*nowhere does not exist"):
         ev.evaluate_folders(tmp_path / "nowhere", gt_root, tmp_path / "out2")
     clips.hand_file(gt_root / "unlabelled", "right", "gt").unlink()
-    with pytest.raises(ValueError, match="hold no ground truth"):  # clips of esther detect: nothing to score against
+    with pytest.raises(ValueError, match="holds ground truth"):  # clips of esther detect: nothing to score against
         ev.evaluate_folders(pred_root, gt_root / "unlabelled", tmp_path / "out2")
 
 

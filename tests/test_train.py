@@ -435,6 +435,9 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     assert not (tmp_path / "run2").exists()  # a run that never started leaves no folder
     no_labels = [a if a != str(run) else str(tmp_path / "run3") for a in args] + ["--targets", "labels", "--labels", str(tmp_path / "nolabels")]
     assert cli.main(no_labels) == 2 and "nolabels does not exist" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    on_a_file = [a if a != str(run) else str(tmp_path / "afile") for a in args]
+    assert cli.main(on_a_file) == 2 and "afile is a file, not a folder" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
     labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
     assert labels["right"]["joints"].shape == (8, 21, 3) and labels["left"]["valid"].dtype == bool

@@ -34,9 +34,9 @@ revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' co
 (`mano.builtin_generator.ARCHETYPES`, built-in hand esther-open-hand-2). Revision 3: crop
 pixels beyond the source image are black (the renderer drew the scene there, which no
 camera records and a crop cut from a recording, `esther crops`, never shows). Revision 4:
-so are crop pixels whose rays the source camera cannot see, beyond a fisheye's field of
-view (`max_angle`) or behind it (`crops.rectification_map`; fisheye rigs and hc crops
-only: the esther rig's offbb crops are unchanged)."""
+so are crop pixels whose rays point behind the source camera (`crops.rectification_map`:
+hc crops turned towards the edge of a fisheye's field, which `project` mirrored back into
+the image and counted as seen; offbb crops are unchanged)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -220,14 +220,16 @@ def _frames(clip_dir: pathlib.Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     return zip(*(clips.iter_video(clip_dir / "video" / f"{view}.mp4") for view in ("left", "right")))
 
 
-def _evidence(clip_dir: pathlib.Path, labels: str | pathlib.Path | None) -> dict[str, dict[str, str]]:
-    """Per hand, the sha256 of each file its crop windows can come from (its labels in
-    `labels`, `gt.npz`, `keypoints.npz`) that exists now: crops are cut again when one
-    changes (labels that arrived after the crops, detection run again)."""
+def _evidence(clip_dir: pathlib.Path, labels: str | pathlib.Path | None) -> dict:
+    """The sha256 of the files the crop windows are computed from: `rig.json`, and per hand
+    each of its labels in `labels`, `gt.npz` and `keypoints.npz` that exists now. Crops are
+    cut again when one changes (labels that arrived after the crops, detection run again,
+    a new calibration); the videos are not hashed (replace them with --overwrite)."""
     files = {side: {"labels": None if labels is None else clips.hand_file(pathlib.Path(labels) / clip_dir.name, side, "labels"),
                     "gt": clips.hand_file(clip_dir, side, "gt"), "keypoints": clips.hand_file(clip_dir, side, "keypoints")}
              for side in clips.SIDES}  # fmt: skip
-    return {side: {kind: file_sha256(path) for kind, path in kinds.items() if path is not None and path.is_file()} for side, kinds in files.items()}
+    hands = {side: {kind: file_sha256(path) for kind, path in kinds.items() if path is not None and path.is_file()} for side, kinds in files.items()}
+    return {"rig": file_sha256(clip_dir / "rig.json") if (clip_dir / "rig.json").is_file() else None, **hands}
 
 
 def crop_clip(clip_dir: str | pathlib.Path, cfg: CropConfig = CropConfig(), *, labels: str | pathlib.Path | None = None,

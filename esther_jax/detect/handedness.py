@@ -185,7 +185,8 @@ def assign_hands(
         evidence = track.evidence
         preferred = int(np.sign(evidence)) if evidence != 0 else prior_side(track)
         frames = track.frames
-        short = len(track.observations) < min(min_observations, T)
+        needed = min(min_observations, T)
+        short = len(track.observations) < needed
         side = 0 if short else next((s for s in (preferred, -preferred) if not frames & taken[s]), 0)
         report_tracks.append({
             "side": {1: "right", -1: "left", 0: "dropped"}[side], "first_frame": min(frames), "last_frame": max(frames),
@@ -193,7 +194,7 @@ def assign_hands(
             "evidence": evidence, "evidence_side": {1: "right", -1: "left"}[preferred] if evidence != 0 else "none (image position)",
         })  # fmt: skip
         if side == 0:
-            report_tracks[-1]["dropped"] = f"fewer than {min_observations} frames" if short else "both sides held during its frames"
+            report_tracks[-1]["dropped"] = f"fewer than {needed} frames" if short else "both sides held during its frames"
             continue
         taken[side] |= frames
         for o in track.observations:

@@ -153,6 +153,20 @@ def evaluate_hand(pred: dict, gt: dict, fps: float, *, parameters: bool = False)
     }
 
 
+def _predictions_folder(pred_root: str | pathlib.Path) -> pathlib.Path:
+    """`pred_root`, checked to be a folder."""
+    if not pathlib.Path(pred_root).is_dir():
+        raise ValueError(f"the predictions folder {pred_root} does not exist (esther label --out or esther predict --out)")
+    return pathlib.Path(pred_root)
+
+
+def _nothing_scored(pred_root: pathlib.Path, gt_root: str | pathlib.Path, missing: list[str]) -> ValueError:
+    """Why no hand was scored: the clips hold no ground truth, or no prediction matches."""
+    if not missing:
+        return ValueError(f"no clip of {gt_root} holds ground truth (hands/<side>/gt.npz): there is nothing to score against")
+    return ValueError(f"no prediction in {pred_root} matches a ground-truth hand in {gt_root} (missing: {missing[:5]})")
+
+
 def evaluate_folders(
     pred_root: str | pathlib.Path,
     gt_root: str | pathlib.Path,
@@ -172,9 +186,7 @@ def evaluate_folders(
     """
     if parameters not in PARAMETER_MODES:
         raise ValueError(f"parameters must be one of {PARAMETER_MODES}, got {parameters!r}")
-    if not pathlib.Path(pred_root).is_dir():
-        raise ValueError(f"the predictions folder {pred_root} does not exist (esther label --out or esther predict --out)")
-    pred_root, out_dir = pathlib.Path(pred_root), check_out_dir(out_dir)
+    pred_root, out_dir = _predictions_folder(pred_root), check_out_dir(out_dir)
     per_clip, missing, compared, not_compared, unverified = [], [], [], [], []
     all_errors, z_pred, z_gt = [], [], []
     for clip in clips.list_clips(gt_root):
@@ -207,10 +219,8 @@ def evaluate_folders(
             z_pred.append(result["wrist_z"][0])
             z_gt.append(result["wrist_z"][1])
     unverified = list(dict.fromkeys(unverified))
-    if not per_clip and not missing:
-        raise ValueError(f"the clips in {gt_root} hold no ground truth (hands/<side>/gt.npz): there is nothing to score against")
     if not per_clip:
-        raise ValueError(f"no prediction in {pred_root} matches a ground-truth hand in {gt_root} (missing: {missing[:5]})")
+        raise _nothing_scored(pred_root, gt_root, missing)
 
     key = jax.random.key(seed)
     records, summary = [], {}

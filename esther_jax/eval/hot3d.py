@@ -95,9 +95,9 @@ def evaluate_hot3d_folders(
     files); sequences averaged frame-weighted. Writes `metrics.json` and `table.md`."""
     from .. import clips, mano
     from ..files import check_out_dir, write_json
-    from .folders import _recorded_model
+    from .folders import _nothing_scored, _predictions_folder, _recorded_model
 
-    out_dir = check_out_dir(out_dir)
+    pred_root, out_dir = _predictions_folder(pred_root), check_out_dir(out_dir)
     candidates = [mano.load_builtin(side) for side in clips.SIDES] + list((models or {}).values())
     by_id = {(m.side, mano.model_id(m)): m for m in candidates}
     fk = jax.jit(jax.vmap(lambda model, p: mano.forward(model, p, check_finite=False).joints, in_axes=(None, 0)))
@@ -107,7 +107,7 @@ def evaluate_hot3d_folders(
             gt_path = clips.hand_file(clip, side, "gt")
             if not gt_path.is_file():
                 continue
-            pred_dir = pathlib.Path(pred_root) / clip.name
+            pred_dir = pred_root / clip.name
             pred_path = clips.hand_file(pred_dir, side, "labels")
             if not pred_path.is_file():
                 missing.append(f"{clip.name}/{side}")
@@ -131,7 +131,7 @@ def evaluate_hot3d_folders(
             scores = hot3d_sequence_metrics(jnp.asarray(joints), jnp.asarray(gt["joints"]), jnp.asarray(pred["valid"]))
             per_sequence.append({"hand": f"{clip.name}/{side}", **scores})
     if not per_sequence:
-        raise ValueError(f"no hand of {gt_root} with gt.npz is labelled in {pred_root}")
+        raise _nothing_scored(pred_root, gt_root, missing)
     scores_only = [{k: v for k, v in s.items() if k != "hand"} for s in per_sequence]
     result = {"preset": "hot3d", "dataset": hot3d_dataset_metrics(scores_only), "per_sequence": per_sequence, "missing": missing,
               "frame_stride": FRAME_STRIDE, "landmarks": "19 (HOT3D canonical without the wrist), absolute, millimetres"}  # fmt: skip

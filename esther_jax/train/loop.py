@@ -353,16 +353,18 @@ def train(
     args = (run, clip_dirs, model_cfg, cfg, data_cfg, val_dirs, init, resume, progress, log_every, mesh, backbone_weights)
     if jax.process_index() != 0:  # process 0 alone writes the run folder and holds its lock
         return _train_run(*args)
+    if run.exists() and not run.is_dir():
+        raise ValueError(f"--out {run} is a file, not a folder")
     fresh = not run.exists()
     run.mkdir(parents=True, exist_ok=True)
-    try:
-        with exclusive_lock(run / ".train.lock", wait=False) as held:
-            if not held:
-                raise ValueError(f"{run} is being trained by another process: wait for it to end, or choose another --out")
+    with exclusive_lock(run / ".train.lock", wait=False) as held:
+        if not held:
+            raise ValueError(f"{run} is being trained by another process: wait for it to end, or choose another --out")
+        try:
             return _train_run(*args)
-    finally:
-        if fresh and not (run / "config.json").exists():  # the run never started: no empty folder left behind
-            shutil.rmtree(run, ignore_errors=True)
+        finally:  # (only the lock's holder cleans up: the folder may be another process's run)
+            if fresh and not (run / "config.json").exists():  # the run never started: no empty folder left behind
+                shutil.rmtree(run, ignore_errors=True)
 
 
 def _train_run(
@@ -379,7 +381,7 @@ def _train_run(
     mesh: jax.sharding.Mesh | None,
     backbone_weights: str | pathlib.Path | None,
 ) -> dict:
-    """`train`'s body, the run folder's lock held."""
+    """`train`'s body (process 0 holds the run folder's lock)."""
     from tqdm import tqdm
 
     data_cfg = data_cfg or data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
@@ -400,9 +402,10 @@ def _train_run(
         if not resume:
             raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
         previous = read_json(config_path)
-        differs = [f"{part}.{key} was {previous.get(part, {}).get(key)!r}, now {value!r}"
-                   for part in ("model", "train", "data") for key, value in json.loads(json.dumps(record[part])).items()
-                   if previous.get(part, {}).get(key) != value]  # fmt: skip
+        now = {part: json.loads(json.dumps(record[part])) for part in ("model", "train", "data")}
+        differs = [f"{part}.{key} was {previous.get(part, {}).get(key)!r}, now {now[part].get(key)!r}"
+                   for part in now for key in sorted(set(now[part]) | set(previous.get(part, {})))
+                   if previous.get(part, {}).get(key) != now[part].get(key)]  # fmt: skip
         if differs:
             steps = any(d.startswith("train.steps") for d in differs)
             hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if steps else ""
@@ -435,7 +438,6 @@ def _train_run(
     trainer = Trainer(net, cfg, hand, mesh=mesh)
     state = trainer.init()
     if new_run and main:  # written once every setting is checked: a run that fails to set up can be started again
-        run.mkdir(parents=True, exist_ok=True)
         data_lib.save_index(index_path, windows, data_cfg)
         write_json(config_path, record)
     restored = load_checkpoint(run, _host(state)) if resume else None
