@@ -127,14 +127,15 @@ def plot_metric_vs_condition(
 ) -> pathlib.Path:
     """One line per method of a metric across ordered conditions (e.g. error vs dropped
     frames), with bootstrap 95% intervals as error bars."""
-    fig, ax = plt.subplots(figsize=(4.6, 3.4))
+    crowded = sum(len(c) for c in conditions) > 40  # long names (e.g. table 5's rows) would overlap on the axis
+    fig, ax = plt.subplots(figsize=(max(4.6, 0.55 * len(conditions)), 4.6 if crowded else 3.4))
     for method in dict.fromkeys(r.method for r in records):
         pts = [next((r for r in records if r.method == method and r.metric == metric and r.condition == c), None) for c in conditions]
         y = np.asarray([p.value if p else np.nan for p in pts])
         lo = np.asarray([p.value - p.ci_low if p and p.ci_low is not None else 0.0 for p in pts])
         hi = np.asarray([p.ci_high - p.value if p and p.ci_high is not None else 0.0 for p in pts])
         ax.errorbar(range(len(conditions)), y, yerr=[lo, hi], marker="o", capsize=3, label=method)
-    ax.set_xticks(range(len(conditions)), conditions)
+    ax.set_xticks(range(len(conditions)), conditions, rotation=40 if crowded else 0, ha="right" if crowded else "center", fontsize=8 if crowded else None)
     label, unit = METRIC_LABELS.get(metric, (metric, ""))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(f"{label} ({unit})")
