@@ -399,7 +399,7 @@ def _train_run(
     mesh = data_mesh() if mesh is None and jax.device_count() > 1 else mesh
     config_path, index_path, metrics_path, val_path = run / "config.json", run / "index.json", run / "metrics.jsonl", run / "validation.jsonl"
     if config_path.exists():
-        if not resume:
+        if not resume and main:  # (the other processes of a new run may see process 0's config.json already)
             raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
         previous = read_json(config_path)
         now = {part: json.loads(json.dumps(record[part])) for part in ("model", "train", "data")}
