@@ -2,6 +2,7 @@
 messages, their atomic writes and their output-folder checks)."""
 
 import contextlib
+import functools
 import fcntl
 import glob
 import hashlib
@@ -124,12 +125,18 @@ def file_sha256(path: str | pathlib.Path) -> str:
     return digest.hexdigest()
 
 
+@functools.cache
 def git_revision() -> str | None:
     """The commit of this checkout of esther_jax (None outside a git checkout), recorded
-    with runs and reports so a number can be traced to the code that made it."""
+    with runs and reports so a number can be traced to the code that made it. Read once,
+    when this module is imported: a process that runs for hours records the commit whose
+    code it imported, not the HEAD the checkout has moved to meanwhile."""
     try:
         root = pathlib.Path(__file__).resolve().parents[1]
         out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
         return out.stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         return None
+
+
+git_revision()  # read at import (see its docstring)
