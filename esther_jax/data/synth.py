@@ -212,6 +212,7 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
             batch = jax.vmap(make)(jnp.asarray(smooth, jnp.result_type(float)))  # all frames at once
             fx, fy, cx, cy = (np.asarray(x, np.float64) for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
             R_all = np.asarray(batch.R_cam_crop, np.float64)
+            K[:, v] = np.asarray(jax.vmap(lambda c: c.K)(batch.camera))
             for t in range(T):
                 crop = crop_lib.Crop(camera=PinholeCamera(fx[t], fy[t], cx[t], cy[t], S, S), R_cam_crop=jnp.asarray(R_all[t]))
                 T_crop_cam = np.eye(4)
@@ -222,7 +223,6 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
                 rendered, _ = render.render_view(scene, crop.camera, T_world_crop, meshes)
                 # beyond the source image a camera records nothing: black, as in crops cut from a recording
                 images[t, v] = np.where(valid[t, v].reshape(valid[t, v].shape + (1,) * (rendered.ndim - 2)), rendered, 0)
-                K[t, v] = [[fx[t], 0, cx[t]], [0, fy[t], cy[t]], [0, 0, 1]]
                 R[t, v] = R_all[t]
                 boxes[t, v] = smooth[t]
         # The token's homography cancels the crop window's own motion. With projections

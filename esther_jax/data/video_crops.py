@@ -163,8 +163,7 @@ def _chunk_geometry(
     K, R, tables = np.zeros((n, 2, 3, 3), np.float32), np.zeros((n, 2, 3, 3), np.float32), []
     for v, camera in enumerate((rig.left, rig.right)):
         batch, table = _crop_tables(camera, jnp.asarray(held[chunk, v], jnp.result_type(float)), strategy, size)
-        fx, fy, cx, cy = (np.asarray(x)[:n] for x in (batch.camera.fx, batch.camera.fy, batch.camera.cx, batch.camera.cy))
-        K[:, v, 0, 0], K[:, v, 0, 2], K[:, v, 1, 1], K[:, v, 1, 2], K[:, v, 2, 2] = fx, cx, fy, cy, 1.0
+        K[:, v] = np.asarray(jax.vmap(lambda c: c.K)(batch.camera))[:n]
         R[:, v] = np.asarray(batch.R_cam_crop)[:n]
         tables.append(np.asarray(table, np.float32))
     return K, R, tables
