@@ -107,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
                        help="the wrist query also reads the encoder's triangulated wrist (not in the paper: docs/architecture.md); "
                        "give it to both stages")
     train.add_argument("--frames", type=int, help="window length (the config's num_frames by default: 16)")
+    train.add_argument("--frames-apart", action="store_true",
+                       help="--stage image: draw each example's frames one by one from every window of its hand and rig (more hands per batch)")
     train.add_argument("--targets", default="gt", choices=["gt", "labels"], help="gt.npz of synthetic clips, or the teacher's labels")
     train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
     train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
@@ -344,7 +346,8 @@ def _train(args) -> int:
         cfg = train.TrainConfig(stage=args.stage, steps=args.steps, batch=args.batch, learning_rate=args.lr,
                                 warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every, ema_decay=args.ema,
                                 compute_dtype="bfloat16" if (args.bf16 if args.bf16 is not None else args.config == "paper") else "float32",
-                                validate_every=args.validate_every, validation_windows=args.validation_windows)  # fmt: skip
+                                validate_every=args.validate_every, validation_windows=args.validation_windows,
+                                frames_apart=args.frames_apart)  # fmt: skip
         data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels,
                                     features=args.features)  # fmt: skip
         summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val, init=args.init, resume=args.resume,

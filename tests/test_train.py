@@ -326,6 +326,42 @@ def test_windows_load_as_network_inputs_with_consistent_targets(synth_clip, tmp_
         train.DataConfig(targets="labels")
 
 
+def test_frames_apart_examples_mix_frames_of_one_hand_and_rig(synth_clip):
+    """Stage 1's frames-apart batches: every frame is a frame of the example's hand (as a
+    consecutive window loads it), the draw is a pure function of (seed, step, position),
+    a process's share loads the same examples, and stage 2 refuses it."""
+    cfg = train.DataConfig(frames=4, stride=2, crop_size=S)
+    windows = train.build_index([synth_clip], cfg)
+    pools = train.frame_pools(tuple(windows), cfg.frames)
+    assert sorted(side for side, _ in pools) == ["left", "right"]
+    assert all(pool == [(str(synth_clip), t) for t in range(8)] for pool in pools.values())  # windows 0, 2, 4 cover frames 0-7
+    whole = {side: train.load_example(train.Window(str(synth_clip), side, 0), cfg, frames=8) for side in ("left", "right")}
+    batch = train.load_batch(windows, cfg, batch=4, seed=0, step=1, frames_apart=True)
+    assert batch[0].images.shape == (4, 4, 2, 3, S, S) and batch[1].joints.shape == (4, 4, 21, 3)
+    sides = [windows[i].side for i in train.batch_indices(len(windows), 4, 0, 1)]
+    drawn = []
+    for b, side in enumerate(sides):
+        clip, targets = whole[side]
+        for k in range(cfg.frames):
+            t = int(np.argmin(np.abs(np.asarray(targets.joints) - np.asarray(batch[1].joints[b, k])).sum(axis=(1, 2))))
+            np.testing.assert_array_equal(np.asarray(batch[0].images[b, k]), np.asarray(clip.images[t]))
+            np.testing.assert_allclose(np.asarray(batch[1].joints[b, k]), np.asarray(targets.joints[t]), atol=1e-6)
+            assert batch[0].view_present[b, k].tolist() == clip.view_present[t].tolist()
+            drawn.append(t)
+        np.testing.assert_array_equal(np.asarray(batch[0].T_rig_cams[b]), np.asarray(clip.T_rig_cams))
+    assert len(set(drawn)) > 4  # frames from across the clip, not one window's
+    again = train.load_batch(windows, cfg, batch=4, seed=0, step=1, frames_apart=True)
+    halves = [train.load_batch(windows, cfg, batch=4, seed=0, step=1, part=part, frames_apart=True) for part in (slice(0, 2), slice(2, 4))]
+    joined = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), *halves)
+    for x, y, z in zip(jax.tree.leaves(batch), jax.tree.leaves(again), jax.tree.leaves(joined)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(z))
+    other = train.load_batch(windows, cfg, batch=4, seed=1, step=1, frames_apart=True)
+    assert not np.array_equal(np.asarray(other[1].joints), np.asarray(batch[1].joints))
+    with pytest.raises(ValueError, match="frames_apart is for stage 'image'"):
+        train.TrainConfig(stage="joint", frames_apart=True)
+
+
 # ----------------------------------------------------------------------------- runs
 
 
@@ -368,8 +404,8 @@ def test_a_run_trains_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path,
 
     clean = data_lib.load_batch
 
-    def poisoned(windows, dcfg, batch, seed, step, part=slice(None)):
-        clips_b, targets_b = clean(windows, dcfg, batch, seed, step, part=part)
+    def poisoned(windows, dcfg, batch, seed, step, **options):
+        clips_b, targets_b = clean(windows, dcfg, batch, seed, step, **options)
         if step == 2:
             targets_b = dataclasses.replace(targets_b, joints=targets_b.joints.at[0, 1, 5].set(jnp.nan))
         return clips_b, targets_b
@@ -381,6 +417,9 @@ def test_a_run_trains_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path,
     monkeypatch.setattr(data_lib, "load_batch", clean)
     with pytest.raises(ValueError, match="already holds a run"):
         train.train(tmp_path / "b", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False)
+    record = json.loads((tmp_path / "b" / "config.json").read_text())
+    del record["train"]["frames_apart"]  # a run recorded before the setting existed had its default
+    (tmp_path / "b" / "config.json").write_text(json.dumps(record))
     b = train.train(tmp_path / "b", [synth_clip], model_cfg, cfg, data_cfg=data_cfg, progress=False, resume=True)
     assert b["resumed_from"] == 2 and b["steps"] == 4
 

@@ -8,6 +8,8 @@ from .data import DataConfig as DataConfig
 from .data import Window as Window
 from .data import batch_indices as batch_indices
 from .data import build_index as build_index
+from .data import frame_pools as frame_pools
+from .data import frames_apart_example as frames_apart_example
 from .data import load_batch as load_batch
 from .data import load_example as load_example
 from .data import load_index as load_index

@@ -19,6 +19,12 @@ example per window as arrays, and the batch of a step as a pure function of
 - `batch_indices(num_windows, batch, seed, step)`: the windows of step `step`, a fresh
   permutation per epoch seeded by (seed, epoch). No iterator state: resuming at step s
   continues the exact same stream.
+- `load_batch(..., frames_apart=True)` (stage 1 only, `TrainConfig.frames_apart`): each
+  example keeps its window's hand and rig but draws its frames one by one from every
+  window of that hand on that rig (`frame_pools`). The frames of one window are nearly
+  the same image, so a batch of 8 windows of 16 frames shows the image encoder about 8
+  hands; drawn apart, 128. Only stage 1 may use it: its losses are per frame, while
+  stage 2 reads the window's motion.
 """
 
 import dataclasses
@@ -132,7 +138,7 @@ def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
     return Targets(params.global_orient, params.hand_pose, targets.betas, params.transl, joints, targets.valid)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=512)
 def _clip_arrays(clip: str, side: str, target_file: str):
     """A hand's crops (images memory-mapped where the file allows: `clips.load_crops`),
     rig and targets, read once per process."""
@@ -144,11 +150,12 @@ def _clip_arrays(clip: str, side: str, target_file: str):
     return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], rig, target, kind
 
 
-def load_example(window: Window, cfg: DataConfig) -> tuple[ClipInput, Targets]:
-    """One window as the network's input and its targets (a right hand: left hands mirrored)."""
+def load_example(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[ClipInput, Targets]:
+    """One window as the network's input and its targets (a right hand: left hands
+    mirrored); `frames` from its start (`cfg.frames` by default)."""
     clip = pathlib.Path(window.clip)
     images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, str(_target_file(clip, window.side, cfg)))
-    sl = slice(window.start, window.start + cfg.frames)
+    sl = slice(window.start, window.start + (cfg.frames if frames is None else frames))
     if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
         raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
     K = K[sl]
@@ -208,11 +215,55 @@ def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[
     return example, targets
 
 
-def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int, *, part: slice = slice(None)) -> tuple[ClipInput, Targets]:
+@functools.lru_cache(maxsize=256)
+def _extrinsics(clip: str) -> bytes:
+    """The camera poses of a clip's rig, as a key: clips of one rig share it."""
+    return np.asarray(StereoRig.from_json(pathlib.Path(clip) / "rig.json").T_rig_cams, np.float64).tobytes()
+
+
+@functools.lru_cache(maxsize=4)
+def frame_pools(windows: tuple[Window, ...], frames: int) -> dict[tuple[str, bytes], list[tuple[str, int]]]:
+    """Every frame `(clip, t)` the windows cover, grouped by hand and rig extrinsics
+    (`(side, extrinsics key)`): the frames a frames-apart example may combine, since one
+    example has one rig and all its frames are mirrored alike."""
+    pools: dict[tuple[str, bytes], set] = {}
+    for w in windows:
+        pools.setdefault((w.side, _extrinsics(w.clip)), set()).update((w.clip, t) for t in range(w.start, w.start + frames))
+    return {key: sorted(members) for key, members in pools.items()}
+
+
+def frames_apart_example(window: Window, pool: list[tuple[str, int]], cfg: DataConfig, rng: np.random.Generator) -> tuple[ClipInput, Targets]:
+    """An example of `cfg.frames` frames drawn at random from `pool` (the frames of the
+    window's hand and rig, `frame_pools`), each read as a one-frame window. The rig is the
+    window's; the shape (`betas`) is its first frame's hand (stage 1 reads only joints)."""
+    parts = [load_example(Window(clip, window.side, t), cfg, frames=1) for clip, t in (pool[i] for i in rng.integers(len(pool), size=cfg.frames))]
+    clip, targets = jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
+    clip = eqx.tree_at(lambda c: c.T_rig_cams, clip, parts[0][0].T_rig_cams)
+    return clip, eqx.tree_at(lambda t: t.betas, targets, parts[0][1].betas)
+
+
+def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int, *, part: slice = slice(None),
+               frames_apart: bool = False) -> tuple[ClipInput, Targets]:  # fmt: skip
     """The stacked examples of `step` (leading batch axis); `part` of them only (one
-    process's share of a multi-process batch, `loop.process_batch_slice`)."""
-    examples = [load_example(windows[i], cfg) for i in batch_indices(len(windows), batch, seed, step)[part]]
+    process's share of a multi-process batch, `loop.process_batch_slice`). With
+    `frames_apart`, each example's frames are drawn from its window's pool
+    (`frames_apart_example`), seeded by (seed, step, position in the batch): the same
+    frames whichever process loads the example."""
+    chosen = batch_indices(len(windows), batch, seed, step)
+    positions = np.arange(len(chosen))[part]
+    if not frames_apart:
+        examples = [load_example(windows[chosen[p]], cfg) for p in positions]
+    else:
+        pools = frame_pools(tuple(windows), cfg.frames)
+        examples = []
+        for p in positions:
+            window = windows[chosen[p]]
+            pool = pools[(window.side, _extrinsics(window.clip))]
+            examples.append(frames_apart_example(window, pool, cfg, np.random.default_rng([seed, step, int(p)])))
     return jax.tree.map(lambda *x: jnp.stack(x), *examples)
 
 
-__all__ = ["DataConfig", "TARGET_KINDS", "Window", "batch_indices", "build_index", "load_batch", "load_example", "load_index", "mirror_targets", "save_index"]
+__all__ = [
+    "DataConfig", "TARGET_KINDS", "Window", "batch_indices", "build_index", "frame_pools", "frames_apart_example", "load_batch",
+    "load_example", "load_index", "mirror_targets", "save_index",
+]  # fmt: skip

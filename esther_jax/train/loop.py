@@ -25,6 +25,7 @@
 """
 
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -74,6 +75,10 @@ class TrainConfig:
     """Steps between validations on the held-out clips (and one at the end)."""
     validation_windows: int = 64
     """At most this many held-out windows per validation (evenly spread over the clips)."""
+    frames_apart: bool = False
+    """Stage 'image' only: each example's frames are drawn one by one from every window of
+    its hand and rig instead of one window's consecutive frames (`data.load_batch`): a
+    batch shows the image encoder B x T hands instead of about B."""
 
     def __post_init__(self):
         if self.stage not in STAGES:
@@ -82,6 +87,8 @@ class TrainConfig:
             raise ValueError("steps, batch, checkpoint_every, keep_checkpoints, validate_every and validation_windows must be positive")
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+        if self.frames_apart and self.stage != "image":
+            raise ValueError("frames_apart is for stage 'image' (per-frame losses); stage 'joint' learns from the windows' motion")
         if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in (0, 1), got {self.ema_decay}")
 
@@ -314,6 +321,17 @@ def _run_record(model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.D
     }
 
 
+def _recorded(record: dict, part: str, key: str):
+    """A setting of an earlier run's `config.json`; one it does not record (added to the
+    library since) had its default then."""
+    settings = record.get(part, {})
+    if key in settings:
+        return settings[key]
+    fields = {f.name: f for f in dataclasses.fields({"model": M.ModelConfig, "train": TrainConfig, "data": data_lib.DataConfig}[part])}
+    field = fields.get(key)
+    return None if field is None or field.default is dataclasses.MISSING else json.loads(json.dumps(field.default))
+
+
 def train(
     run: str | pathlib.Path,
     clip_dirs: list[str | pathlib.Path],
@@ -403,9 +421,9 @@ def _train_run(
             raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
         previous = read_json(config_path)
         now = {part: json.loads(json.dumps(record[part])) for part in ("model", "train", "data")}
-        differs = [f"{part}.{key} was {previous.get(part, {}).get(key)!r}, now {now[part].get(key)!r}"
+        differs = [f"{part}.{key} was {_recorded(previous, part, key)!r}, now {now[part].get(key)!r}"
                    for part in now for key in sorted(set(now[part]) | set(previous.get(part, {})))
-                   if previous.get(part, {}).get(key) != now[part].get(key)]  # fmt: skip
+                   if _recorded(previous, part, key) != now[part].get(key)]  # fmt: skip
         if differs:
             steps = any(d.startswith("train.steps") for d in differs)
             hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if steps else ""
@@ -465,7 +483,8 @@ def _train_run(
     # The batch of the next step is read on a worker thread while the current step runs.
     logs = (open(metrics_path, "a"), open(val_path, "a")) if main else (open(os.devnull, "w"), open(os.devnull, "w"))
     with logs[0] as log, logs[1] as val_log, ThreadPoolExecutor(1) as loader:
-        fetch = lambda s: loader.submit(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, s, part=share)  # noqa: E731
+        load = functools.partial(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, part=share, frames_apart=cfg.frames_apart)
+        fetch = lambda s: loader.submit(load, step=s)  # noqa: E731
         pending = fetch(start)
         for step in range(start, cfg.steps):
             clips_b, targets_b = pending.result()
@@ -514,6 +533,8 @@ def train_stages(
     stage2_steps: int,
     batch: int = 8,
     learning_rate: float = 5e-4,
+    stage1_learning_rate: float | None = None,
+    stage1_frames_apart: bool = False,
     val_dirs: list[str | pathlib.Path] | None = None,
     validate_every: int = 400,
     validation_windows: int = 48,
@@ -525,18 +546,23 @@ def train_stages(
     `out/stage1`; stage 2 ('joint') trains everything from stage 1's network into
     `out/stage2`. A stage with 0 steps is skipped, a stage whose `model/` exists is kept,
     an interrupted one resumes from its checkpoint. Each stage warms up over a tenth of
-    its steps (at most 100), then decays along a cosine. Returns the final model folder."""
+    its steps (at most 100), then decays along a cosine to 0 from its peak rate
+    (`learning_rate`; stage 1's `stage1_learning_rate` if given). `stage1_frames_apart`
+    draws stage 1's frames apart (`TrainConfig.frames_apart`). Returns the final model
+    folder."""
     out = pathlib.Path(out)
     if stage1_steps < 0 or stage2_steps < 0 or stage1_steps + stage2_steps == 0:
         raise ValueError(f"stage steps must be >= 0 and not both 0, got {stage1_steps} and {stage2_steps}")
     data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
     last = None
-    for stage, steps, name in (("image", stage1_steps, "stage1"), ("joint", stage2_steps, "stage2")):
+    stages = (("image", stage1_steps, "stage1", stage1_learning_rate or learning_rate, stage1_frames_apart),
+              ("joint", stage2_steps, "stage2", learning_rate, False))  # fmt: skip
+    for stage, steps, name, rate, frames_apart in stages:
         if steps == 0:
             continue
         run = out / name
         if not (run / "model").is_dir():
-            cfg = TrainConfig(stage=stage, steps=steps, batch=batch, learning_rate=learning_rate, warmup_steps=min(100, steps // 10),
+            cfg = TrainConfig(stage=stage, steps=steps, batch=batch, learning_rate=rate, warmup_steps=min(100, steps // 10), frames_apart=frames_apart,
                               validate_every=validate_every, validation_windows=validation_windows, checkpoint_every=100, seed=seed)  # fmt: skip
             train(run, clip_dirs, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val_dirs, init=last, resume=(run / "config.json").exists(), progress=progress)
         last = run
