@@ -72,14 +72,19 @@ print(f"kept from the earlier report: {', '.join(carried) or 'none'}")
 
 # %%
 full = results["esther"]
+minutes = {r: studies.training_minutes(scale, r) for r in results}  # None: trained under another root, an earlier sitting
 short = lambda rev: rev[:7] + rev[40:] if rev else "unknown"  # noqa: E731  (a commit's first 7 hex digits, and " or earlier")
 table_rows = [{"variant": r, **v, "trained_at": short(trained_at[r]), "delta_mm": v["mpjpe_mm"] - full["mpjpe_mm"], "paper_mm": PAPER_MPJPE[r],
-               "paper_delta_mm": PAPER_MPJPE[r] - PAPER_MPJPE["esther"],
+               "paper_delta_mm": PAPER_MPJPE[r] - PAPER_MPJPE["esther"], "train_min": minutes[r],
                "separated": studies.separated(v["intervals"]["mpjpe_mm"], full["intervals"]["mpjpe_mm"]) if r != "esther" else None}
               for r, v in results.items()]  # fmt: skip
 summary = studies.table(table_rows, [("mpjpe_mm", "MPJPE mm"), ("delta_mm", "Δ vs full"), ("separated", "interval apart"),
                                      ("p_mpjpe_mm", "P-MPJPE mm"), ("wrist_mm", "wrist mm"), ("paper_mm", "paper MPJPE"),
-                                     ("paper_delta_mm", "paper Δ"), ("trained_at", "trained at")], first="variant")  # fmt: skip
+                                     ("paper_delta_mm", "paper Δ"), ("trained_at", "trained at"), ("train_min", "train min")], first="variant")  # fmt: skip
+timed = [m for m in minutes.values() if m is not None]
+training_note = (f"Training took {sum(timed):.0f} min on this machine for the {len(timed)} rows whose runs are in the study root "
+                 f"(column 'train min', both stages); the wall time below is this sitting's (the evaluation, and the rows it trained)."
+                 if timed else "No row's training run is in the study root (the smoke scale trains none).")  # fmt: skip
 print(summary)
 figures = [plot_metric_vs_condition(studies.records("cpu network", results), "mpjpe", list(results), out / "ablations_mpjpe.png", xlabel="variant")]
 
@@ -105,6 +110,7 @@ print(verdict)
 
 # %%
 studies.write_report(out, "ablations", title="Ablations (table 5)", verdict=verdict, scale=scale, seconds=time.perf_counter() - start,
-                     results={"rows": results, "trained_at": {r: trained_at[r] for r in results}, "paper_mpjpe_mm": PAPER_MPJPE, "ranked": ranked},
-                     sections=["## Results (absolute MPJPE, rig frame; mean [95% bootstrap interval] over held-out windows)", summary],
+                     results={"rows": results, "trained_at": {r: trained_at[r] for r in results}, "training_minutes": minutes,
+                              "paper_mpjpe_mm": PAPER_MPJPE, "ranked": ranked},
+                     sections=["## Results (absolute MPJPE, rig frame; mean [95% bootstrap interval] over held-out windows)", summary, training_note],
                      figures=figures)

@@ -144,6 +144,18 @@ def test_earlier_rows_are_kept_only_when_the_reference_reproduces(tmp_path):
     assert studies.earlier_rows(tmp_path, "missing", scale, "esther", row(10.0, 9.0, 11.0)) == ({}, {})
 
 
+def test_training_minutes_sum_the_logged_steps_of_both_stages(tmp_path, monkeypatch):
+    monkeypatch.setenv(studies.ROOT_ENV, str(tmp_path))
+    scale = studies.SCALES["full"]
+    assert studies.training_minutes(scale, "esther") is None
+    for stage, rates in (("stage1", [4.0, 8.0]), ("stage2", [2.0])):
+        run = tmp_path / "runs" / "esther" / stage
+        run.mkdir(parents=True)
+        (run / "config.json").write_text(json.dumps({"train": {"batch": 8}}))
+        (run / "metrics.jsonl").write_text("".join(json.dumps({"step": i + 1, "clips_per_s": r}) + "\n" for i, r in enumerate(rates)))
+    assert studies.training_minutes(scale, "esther") == pytest.approx((2.0 + 1.0 + 4.0) / 60.0)
+
+
 def test_every_study_has_a_notebook():
     assert sorted(p.stem for p in NOTEBOOKS) == sorted(STUDY_OF)
 

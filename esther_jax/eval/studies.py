@@ -181,6 +181,25 @@ def trained_at(scale: StudyScale, variant: str = "esther") -> str | None:
     return None
 
 
+def training_minutes(scale: StudyScale, variant: str = "esther") -> float | None:
+    """The minutes that training the scale's network `variant` (`trained`) took, both
+    stages: the sum of the logged step intervals of `<root>/runs/<variant>/stage*/metrics.jsonl`
+    (each step's `batch / clips_per_s`: the step, its batch's wait, compilation, validation
+    and checkpoints); None when no stage has logged a step (not trained under this root)."""
+    seconds, found = 0.0, False
+    for stage in ("stage1", "stage2"):
+        run = study_root(scale) / "runs" / variant / stage
+        log = run / "metrics.jsonl"
+        if not log.is_file():
+            continue
+        batch = read_json(run / "config.json")["train"]["batch"]
+        for line in log.read_text().splitlines():
+            if line.strip():
+                seconds += batch / json.loads(line)["clips_per_s"]
+                found = True
+    return seconds / 60.0 if found else None
+
+
 def training_windows(scale: StudyScale) -> list[data_lib.Window]:
     """The windows the scale's networks are trained on (the 'train' dataset)."""
     return data_lib.build_index(dataset(scale, "train"), data_config(scale))
