@@ -254,7 +254,7 @@ def learn(args) -> None:
     val_windows = train.build_index(val_dirs, val_cfg)
     result = {"config": cfg.name, "overrides": overrides, "evaluated": last.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs),
               "seconds": timings, "stage1_steps": args.stage1_steps, "stage2_steps": args.stage2_steps, "batch": args.batch, "lr": args.lr,
-              "stage1_lr": args.stage1_lr or args.lr, "frames_apart": args.frames_apart}  # fmt: skip
+              "stage1_lr": args.lr if args.stage1_lr is None else args.stage1_lr, "frames_apart": args.frames_apart}  # fmt: skip
     seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)  # both views: predicted once, scored and broken down
     result["both"] = score_predictions(seen.joints, seen.emitted, val_windows, val_cfg, keypoints_2d=seen.keypoints_2d, batch=args.batch)
     result["right dropped"] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=1)

@@ -82,7 +82,7 @@ summary = studies.table(table_rows, [("mpjpe_mm", "MPJPE mm"), ("delta_mm", "Δ 
                                      ("p_mpjpe_mm", "P-MPJPE mm"), ("wrist_mm", "wrist mm"), ("paper_mm", "paper MPJPE"),
                                      ("paper_delta_mm", "paper Δ"), ("trained_at", "trained at"), ("train_min", "train min")], first="variant")  # fmt: skip
 timed = [m for m in minutes.values() if m is not None]
-training_note = (f"Training took {sum(timed):.0f} min on this machine for the {len(timed)} rows whose runs are in the study root "
+training_note = (f"The training steps took {sum(timed):.0f} min on this machine for the {len(timed)} rows whose runs are in the study root "
                  f"(column 'train min', both stages); the wall time below is this sitting's (the evaluation, and the rows it trained)."
                  if timed else "No row's training run is in the study root (the smoke scale trains none).")  # fmt: skip
 print(summary)

@@ -182,10 +182,12 @@ def trained_at(scale: StudyScale, variant: str = "esther") -> str | None:
 
 
 def training_minutes(scale: StudyScale, variant: str = "esther") -> float | None:
-    """The minutes that training the scale's network `variant` (`trained`) took, both
-    stages: the sum of the logged step intervals of `<root>/runs/<variant>/stage*/metrics.jsonl`
-    (each step's `batch / clips_per_s`: the step, its batch's wait, compilation, validation
-    and checkpoints); None when no stage has logged a step (not trained under this root)."""
+    """The minutes the training steps of the scale's network `variant` (`trained`) took,
+    both stages: the sum of the logged step intervals of `<root>/runs/<variant>/stage*/metrics.jsonl`
+    (each step's `batch / clips_per_s`: the step, its batch's wait, the first step's
+    compilation, the validations and checkpoints between steps; not the setup before the
+    first step, the last validation or the model's save, nor steps an interruption lost);
+    None when no stage has logged a step (not trained under this root)."""
     seconds, found = 0.0, False
     for stage in ("stage1", "stage2"):
         run = study_root(scale) / "runs" / variant / stage

@@ -138,7 +138,7 @@ def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
     return Targets(params.global_orient, params.hand_pose, targets.betas, params.transl, joints, targets.valid)
 
 
-@functools.lru_cache(maxsize=512)
+@functools.lru_cache(maxsize=256)
 def _clip_arrays(clip: str, side: str, target_file: str):
     """A hand's crops (images memory-mapped where the file allows: `clips.load_crops`),
     rig and targets, read once per process."""

@@ -323,7 +323,8 @@ def _run_record(model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.D
 
 def _recorded(record: dict, part: str, key: str):
     """A setting of an earlier run's `config.json`; one it does not record (added to the
-    library since) had its default then."""
+    library since) had its default then. So a new setting must default to the behaviour
+    the library had before it existed."""
     settings = record.get(part, {})
     if key in settings:
         return settings[key]
@@ -555,7 +556,7 @@ def train_stages(
         raise ValueError(f"stage steps must be >= 0 and not both 0, got {stage1_steps} and {stage2_steps}")
     data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
     last = None
-    stages = (("image", stage1_steps, "stage1", stage1_learning_rate or learning_rate, stage1_frames_apart),
+    stages = (("image", stage1_steps, "stage1", learning_rate if stage1_learning_rate is None else stage1_learning_rate, stage1_frames_apart),
               ("joint", stage2_steps, "stage2", learning_rate, False))  # fmt: skip
     for stage, steps, name, rate, frames_apart in stages:
         if steps == 0:
