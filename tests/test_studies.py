@@ -156,6 +156,22 @@ def test_training_minutes_sum_the_logged_steps_of_both_stages(tmp_path, monkeypa
     assert studies.training_minutes(scale, "esther") == pytest.approx((2.0 + 1.0 + 4.0) / 60.0)
 
 
+def test_a_report_names_clips_of_an_earlier_engine_revision(tmp_path, monkeypatch):
+    from esther_jax.data import synth
+
+    monkeypatch.setenv(studies.ROOT_ENV, str(tmp_path / "root"))
+    scale = studies.SCALES["full"]
+    for name, revision in (("train", synth.ENGINE_REVISION - 1), ("heldout", synth.ENGINE_REVISION)):
+        (tmp_path / "root" / "data" / name).mkdir(parents=True)
+        (tmp_path / "root" / "data" / name / "synth.json").write_text(json.dumps({"engine_revision": revision}))
+    json_path, md_path = studies.write_report(tmp_path / "out", "t", title="t", verdict="v", results={}, scale=scale, seconds=1.0)
+    assert json.loads(json_path.read_text())["engine_revisions"] == {"heldout": synth.ENGINE_REVISION, "train": synth.ENGINE_REVISION - 1}
+    assert f"made by synth engine revision {synth.ENGINE_REVISION - 1} (" in md_path.read_text()
+    (tmp_path / "root" / "data" / "train" / "synth.json").write_text(json.dumps({"engine_revision": synth.ENGINE_REVISION}))
+    assert "synth engine revision" not in studies.write_report(tmp_path / "out", "t", title="t", verdict="v", results={}, scale=scale,
+                                                               seconds=1.0)[1].read_text()  # fmt: skip
+
+
 def test_every_study_has_a_notebook():
     assert sorted(p.stem for p in NOTEBOOKS) == sorted(STUDY_OF)
 

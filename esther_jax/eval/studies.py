@@ -463,6 +463,16 @@ def command_line() -> str:
     return " ".join(x for x in (env, "python", *sys.argv) if x)
 
 
+def data_revisions(scale: StudyScale) -> dict[str, int]:
+    """The synth engine revision that made each dataset under the scale's study root
+    (`<root>/data/<name>/synth.json`): a report made from clips of an earlier revision
+    (reused, with a warning, by `dataset`) says so."""
+    revisions = {}
+    for record in sorted((study_root(scale) / "data").glob("*/synth.json")):
+        revisions[record.parent.name] = int(read_json(record).get("engine_revision", 1))
+    return revisions
+
+
 def write_report(
     out: str | pathlib.Path,
     study: str,
@@ -481,13 +491,19 @@ def write_report(
     relative to `out`), then how it was made. Atomic; returns both paths."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    revisions = data_revisions(scale)
     record = {"study": study, "scale": dataclasses.asdict(scale), "command": command_line(), "seconds": round(seconds, 1),
-              "git_revision": git_revision(), "verdict": verdict, "results": results}  # fmt: skip
+              "git_revision": git_revision(), "engine_revisions": revisions, "verdict": verdict, "results": results}  # fmt: skip
     json_path = write_json(out / f"{study}.json", strict_json(record))
     figs = "\n".join(f"![{pathlib.Path(f).stem}]({pathlib.Path(f).relative_to(out) if pathlib.Path(f).is_absolute() else f})" for f in figures)
     made = (f"Made by `{record['command']}` at the `{scale.name}` scale ({scale.model}, {scale.train_clips} training clips, "
             f"stages of {scale.stage1_steps} + {scale.stage2_steps} steps at batch {scale.batch}) in {seconds / 60:.1f} min of wall time "
             f"on this machine; revision {record['git_revision'] or 'unknown'}. Every number is in `{study}.json`.")  # fmt: skip
+    older = sorted({r for r in revisions.values() if r != synth.ENGINE_REVISION})
+    if older:
+        made += (f" The study root's clips were made by synth engine revision {', '.join(map(str, older))} "
+                 f"({', '.join(f'{k}: {v}' for k, v in revisions.items())}; this library's is {synth.ENGINE_REVISION}), reused as they were: "
+                 f"the default study root of this revision makes its own.")  # fmt: skip
     text = "\n\n".join(x for x in (f"# {title}", verdict, *sections, figs, "## How this was made", made) if x) + "\n"
     md_path = out / f"{study}.md"
     with atomic_output(md_path) as tmp:
