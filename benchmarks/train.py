@@ -30,7 +30,9 @@ and the right view dropped) next to the trivial baseline: the training set's mea
 wrist-relative hand placed at the wrist triangulated from the clip's detected 2D
 keypoints (detectors averaged; a frame without a triangulation keeps the last one);
 its 2D error is that of the training set's mean keypoints in each view's crop, the
-level a 2D head that does not read its crops stays at.
+level a 2D head that does not read its crops stays at. The network is also scored on as
+many of its own training windows (both views): the generalisation gap, which says
+whether more clips (data) or more fitting (steps, size) is the lever.
 The wrist with both views is broken down by rig-frame axis (mean absolute error, the
 correlation and spread of the prediction against the truth's) and into its parts along
 and across the line of sight from the rig origin (`metrics.wrist_axes`): this is what
@@ -260,6 +262,9 @@ def learn(args) -> None:
     result["right dropped"] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=1)
     result["wrist_axes"] = {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(seen.wrist_axes()).items()}
     result["baseline"] = _baseline(train.build_index(train_dirs, data_cfg), val_windows, val_cfg)
+    seen_windows = train.build_index(train_dirs, val_cfg)  # as many training windows, spread over the clips: the generalisation gap
+    seen_windows = [seen_windows[i] for i in np.linspace(0, len(seen_windows) - 1, len(val_windows)).round().astype(int)]
+    result["training windows, both"] = evaluate_windows(net, seen_windows, val_cfg, batch=args.batch)
     write_json(out / "learning.json", result)
     print(json.dumps(result, indent=1))
     print(f"{'':<22} {'P-MPJPE':>8} {'PA-MPJPE':>9} {'wrist':>7} {'2D px':>6} {'jitter':>7} {'gt jitter':>9} {'F1':>5}  (mm, m/s^2)")
@@ -267,6 +272,9 @@ def learn(args) -> None:
         r = result[views]
         print(f"{'ESTHER ' + views:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
               f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}")  # fmt: skip
+    r = result["training windows, both"]
+    print(f"{'ESTHER on its training':<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
+          f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}  ({r['windows']} training windows, both views)")  # fmt: skip
     b = result["baseline"]
     print(f"{'trivial baseline':<22} {b['p_mpjpe_mm']:8.1f} {b['pa_mpjpe_mm']:9.1f} {b['wrist_mm']:7.1f} {b['keypoints_2d_px']:6.1f}")
     w = result["wrist_axes"]
