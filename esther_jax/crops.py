@@ -203,20 +203,21 @@ def crop_coverage(camera: AbstractCamera, crop: Crop) -> Bool[np.ndarray, "S S"]
     return table_coverage(np.asarray(rectification_map(camera, crop)), camera)
 
 
-def table_coverage(table: Float[np.ndarray, "S S 2"], camera: AbstractCamera) -> Bool[np.ndarray, "S S"]:
+def table_coverage(table: Float[np.ndarray, "H W 2"], camera: AbstractCamera) -> Bool[np.ndarray, "H W"]:
     """The crop pixels whose source pixel (a `rectification_map` table) lies in the image."""
     u, v = table[..., 0], table[..., 1]
     return (u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5)
 
 
-def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "S S 2"]:
-    """For every crop pixel, the source-image pixel to sample: `cv2.remap(image,
+def rectification_map(camera: AbstractCamera, crop: Crop) -> Float[Array, "H W 2"]:
+    """For every pixel of the crop camera's H x W image (S x S for a hand crop; the source
+    image's size for a `wide_pinhole`), the source-image pixel to sample: `cv2.remap(image,
     map[..., 0], map[..., 1], cv2.INTER_LINEAR)` renders the crop. A crop pixel whose ray
     points behind the camera (an `hc` crop turned towards the edge of a fisheye's field:
     `project` folds such a ray back into the image, onto the pixel of its mirror image)
     maps far outside the image: black, and not covered (`table_coverage`)."""
-    S = crop.camera.width
-    v, u = jnp.meshgrid(jnp.arange(S, dtype=crop.camera.fx.dtype), jnp.arange(S, dtype=crop.camera.fx.dtype), indexing="ij")
+    dtype = crop.camera.fx.dtype
+    v, u = jnp.meshgrid(jnp.arange(crop.camera.height, dtype=dtype), jnp.arange(crop.camera.width, dtype=dtype), indexing="ij")
     rays_crop = crop.camera.unproject(jnp.stack([u, v], -1))
     rays_cam = rays_crop @ crop.R_cam_crop.T
     return jnp.where(rays_cam[..., 2:3] > 0, camera.project(rays_cam), -float(camera.width + camera.height))
@@ -227,7 +228,7 @@ def remap_crop(image: np.ndarray, camera: AbstractCamera, crop: Crop) -> np.ndar
     return remap_table(image, np.asarray(rectification_map(camera, crop), np.float32))
 
 
-def remap_table(image: np.ndarray, table: Float[np.ndarray, "S S 2"]) -> np.ndarray:
+def remap_table(image: np.ndarray, table: Float[np.ndarray, "H W 2"]) -> np.ndarray:
     """Sample an image at a `rectification_map` table's source pixels (bilinear; black outside)."""
     table = np.asarray(table, np.float32)
     return cv2.remap(image, table[..., 0], table[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

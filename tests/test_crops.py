@@ -119,3 +119,16 @@ def test_crop_pixels_behind_the_camera_are_black_and_uncovered(preset):
     table = np.asarray(crops.rectification_map(cam, crop))
     assert not crops.table_coverage(table, cam)[unseen].any() and not crops.crop_coverage(cam, crop)[unseen].any()
     assert crops.remap_table(image, table).max() == 0  # nothing from the lit quadrant leaks in
+
+
+def test_wide_pinhole_table_has_the_source_image_size():
+    """The offbb wide pinhole of a non-square fisheye (Aria's 640 x 480 preset) keeps the
+    image's W x H, and so does its rectification table (`esther detect` remaps whole frames
+    with it); each table entry is the fisheye pixel of that pinhole pixel's ray."""
+    cam = cameras.rig_preset("hot3d_aria").left
+    wide = crops.wide_pinhole(cam, 120.0)
+    table = np.asarray(crops.rectification_map(cam, crops.Crop(wide, jnp.eye(3))))
+    assert table.shape == (cam.height, cam.width, 2)
+    pixels = np.array([[0.0, 0.0], [cam.width - 1.0, cam.height - 1.0], [101.0, 407.0]])
+    expected = np.asarray(cam.project(wide.unproject(jnp.asarray(pixels))))
+    np.testing.assert_allclose(table[pixels[:, 1].astype(int), pixels[:, 0].astype(int)], expected, atol=1e-3)
