@@ -150,9 +150,9 @@ def _clip_arrays(clip: str, side: str, target_file: str):
     return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], rig, target, kind
 
 
-def load_example(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[ClipInput, Targets]:
-    """One window as the network's input and its targets (a right hand: left hands
-    mirrored); `frames` from its start (`cfg.frames` by default)."""
+def _window_arrays(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[dict, StereoRig]:
+    """The arrays `_example` reads for `frames` of a window from its start (`cfg.frames` by
+    default; only those frames are read), and its clip's rig."""
     clip = pathlib.Path(window.clip)
     images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, str(_target_file(clip, window.side, cfg)))
     sl = slice(window.start, window.start + (cfg.frames if frames is None else frames))
@@ -167,7 +167,7 @@ def load_example(window: Window, cfg: DataConfig, frames: int | None = None) -> 
                                         f"the crops have {images.shape[0]}: rebuild the feature cache")  # fmt: skip
         visual = {"features": np.asarray(cached[sl])}
         K = resize_intrinsics(K, images.shape[2], cfg.crop_size)  # the crops the features were computed from
-    else:  # only the window's frames are read (and resized)
+    else:
         pixels, K = resize_crops(np.asarray(images[sl]), K, cfg.crop_size)
         visual = {"pixels": pixels if pixels.ndim == 5 else np.repeat(pixels[..., None], 3, axis=-1)}  # grey rigs: RGB
     arrays = {
@@ -182,6 +182,13 @@ def load_example(window: Window, cfg: DataConfig, frames: int | None = None) -> 
         "joints": target["joints"][sl].astype(dtype),
         "valid": np.asarray(target["onscreen"][sl] if kind == "gt" else target["valid"][sl], bool),
     }
+    return arrays, rig
+
+
+def load_example(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[ClipInput, Targets]:
+    """One window as the network's input and its targets (a right hand: left hands
+    mirrored); `frames` from its start (`cfg.frames` by default)."""
+    arrays, rig = _window_arrays(window, cfg, frames)
     return _example(arrays, rig, window.side == "left", cfg.crop_size)
 
 
@@ -216,30 +223,32 @@ def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[
 
 
 @functools.lru_cache(maxsize=256)
-def _extrinsics(clip: str) -> bytes:
-    """The camera poses of a clip's rig, as a key: clips of one rig share it."""
-    return np.asarray(StereoRig.from_json(pathlib.Path(clip) / "rig.json").T_rig_cams, np.float64).tobytes()
+def _rig_key(clip: str) -> tuple:
+    """A clip's rig (cameras, intrinsics, poses) as a key: clips of one rig share it."""
+    leaves, structure = jax.tree.flatten(StereoRig.from_json(pathlib.Path(clip) / "rig.json"))
+    return str(structure), tuple(np.asarray(x, np.float64).tobytes() for x in leaves)
 
 
 @functools.lru_cache(maxsize=4)
-def frame_pools(windows: tuple[Window, ...], frames: int) -> dict[tuple[str, bytes], list[tuple[str, int]]]:
-    """Every frame `(clip, t)` the windows cover, grouped by hand and rig extrinsics
-    (`(side, extrinsics key)`): the frames a frames-apart example may combine, since one
-    example has one rig and all its frames are mirrored alike."""
-    pools: dict[tuple[str, bytes], set] = {}
+def frame_pools(windows: tuple[Window, ...], frames: int) -> dict[tuple[str, tuple], list[tuple[str, int]]]:
+    """Every frame `(clip, t)` the windows cover, grouped by hand and rig (`(side, rig
+    key)`): the frames a frames-apart example may combine, since one example has one rig
+    and all its frames are mirrored alike."""
+    pools: dict[tuple[str, tuple], set] = {}
     for w in windows:
-        pools.setdefault((w.side, _extrinsics(w.clip)), set()).update((w.clip, t) for t in range(w.start, w.start + frames))
+        pools.setdefault((w.side, _rig_key(w.clip)), set()).update((w.clip, t) for t in range(w.start, w.start + frames))
     return {key: sorted(members) for key, members in pools.items()}
 
 
 def frames_apart_example(window: Window, pool: list[tuple[str, int]], cfg: DataConfig, rng: np.random.Generator) -> tuple[ClipInput, Targets]:
     """An example of `cfg.frames` frames drawn at random from `pool` (the frames of the
-    window's hand and rig, `frame_pools`), each read as a one-frame window. The rig is the
-    window's; the shape (`betas`) is its first frame's hand (stage 1 reads only joints)."""
-    parts = [load_example(Window(clip, window.side, t), cfg, frames=1) for clip, t in (pool[i] for i in rng.integers(len(pool), size=cfg.frames))]
-    clip, targets = jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
-    clip = eqx.tree_at(lambda c: c.T_rig_cams, clip, parts[0][0].T_rig_cams)
-    return clip, eqx.tree_at(lambda t: t.betas, targets, parts[0][1].betas)
+    window's hand and rig, `frame_pools`), made in one `_example` call as a window is. The
+    rig is the pool's; the shape (`betas`) is the first drawn frame's hand, which also
+    mirrors the translations of a left hand (stage 1 reads only the joints)."""
+    drawn = [_window_arrays(Window(clip, window.side, t), cfg, frames=1) for clip, t in (pool[i] for i in rng.integers(len(pool), size=cfg.frames))]
+    parts, rig = [arrays for arrays, _ in drawn], drawn[0][1]
+    arrays = {k: parts[0][k] if k == "betas" else np.concatenate([part[k] for part in parts]) for k in parts[0]}
+    return _example(arrays, rig, window.side == "left", cfg.crop_size)
 
 
 def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, step: int, *, part: slice = slice(None),
@@ -258,7 +267,7 @@ def load_batch(windows: list[Window], cfg: DataConfig, batch: int, seed: int, st
         examples = []
         for p in positions:
             window = windows[chosen[p]]
-            pool = pools[(window.side, _extrinsics(window.clip))]
+            pool = pools[(window.side, _rig_key(window.clip))]
             examples.append(frames_apart_example(window, pool, cfg, np.random.default_rng([seed, step, int(p)])))
     return jax.tree.map(lambda *x: jnp.stack(x), *examples)
 
