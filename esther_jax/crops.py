@@ -191,7 +191,7 @@ def hand_crop(
     return rectified_crop(camera, box, strategy, size, padding)
 
 
-def crop_coverage(camera: AbstractCamera, crop: Crop) -> Bool[np.ndarray, "S S"]:
+def crop_coverage(camera: AbstractCamera, crop: Crop) -> Bool[np.ndarray, "H W"]:
     """The crop pixels that come from inside the source image."""
     axis_aligned = np.array_equal(np.asarray(crop.R_cam_crop), np.eye(3))
     if isinstance(camera, PinholeCamera) and axis_aligned:  # the window's overlap with the image

@@ -5,6 +5,7 @@ the terms on the real `cpu-tiny` network (finite, with gradients; no dead switch
 import dataclasses
 import json
 import math
+import shutil
 
 import equinox as eqx
 import jax
@@ -326,7 +327,7 @@ def test_windows_load_as_network_inputs_with_consistent_targets(synth_clip, tmp_
         train.DataConfig(targets="labels")
 
 
-def test_frames_apart_examples_mix_frames_of_one_hand_and_rig(synth_clip):
+def test_frames_apart_examples_mix_frames_of_one_hand_and_rig(synth_clip, tmp_path):
     """Stage 1's frames-apart batches: every frame is a frame of the example's hand (as a
     consecutive window loads it), the draw is a pure function of (seed, step, position),
     a process's share loads the same examples, and stage 2 refuses it."""
@@ -335,6 +336,11 @@ def test_frames_apart_examples_mix_frames_of_one_hand_and_rig(synth_clip):
     pools = train.frame_pools(tuple(windows), cfg.frames)
     assert sorted(side for side, _ in pools) == ["left", "right"]
     assert all(pool == [(str(synth_clip), t) for t in range(8)] for pool in pools.values())  # windows 0, 2, 4 cover frames 0-7
+    twin = shutil.copytree(synth_clip, tmp_path / "clip_renamed_rig")  # the same rig under another name (HOT3D names rigs per clip)
+    record = json.loads((twin / "rig.json").read_text())
+    (twin / "rig.json").write_text(json.dumps({**record, "name": "another"}))
+    shared = train.frame_pools(tuple(train.build_index([synth_clip, twin], cfg)), cfg.frames)
+    assert len(shared) == 2 and all(len({clip for clip, _ in pool}) == 2 for pool in shared.values())
     whole = {side: train.load_example(train.Window(str(synth_clip), side, 0), cfg, frames=8) for side in ("left", "right")}
     batch = train.load_batch(windows, cfg, batch=4, seed=0, step=1, frames_apart=True)
     assert batch[0].images.shape == (4, 4, 2, 3, S, S) and batch[1].joints.shape == (4, 4, 21, 3)

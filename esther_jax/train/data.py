@@ -224,8 +224,9 @@ def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[
 
 @functools.lru_cache(maxsize=256)
 def _rig_key(clip: str) -> tuple:
-    """A clip's rig (cameras, intrinsics, poses) as a key: clips of one rig share it."""
-    leaves, structure = jax.tree.flatten(StereoRig.from_json(pathlib.Path(clip) / "rig.json"))
+    """A clip's rig (camera models, sizes, intrinsics, poses; not its name, which HOT3D
+    gives per clip) as a key: clips of one rig share it."""
+    leaves, structure = jax.tree.flatten(dataclasses.replace(StereoRig.from_json(pathlib.Path(clip) / "rig.json"), name=""))
     return str(structure), tuple(np.asarray(x, np.float64).tobytes() for x in leaves)
 
 
@@ -243,8 +244,8 @@ def frame_pools(windows: tuple[Window, ...], frames: int) -> dict[tuple[str, tup
 def frames_apart_example(window: Window, pool: list[tuple[str, int]], cfg: DataConfig, rng: np.random.Generator) -> tuple[ClipInput, Targets]:
     """An example of `cfg.frames` frames drawn at random from `pool` (the frames of the
     window's hand and rig, `frame_pools`), made in one `_example` call as a window is. The
-    rig is the pool's; the shape (`betas`) is the first drawn frame's hand, which also
-    mirrors the translations of a left hand (stage 1 reads only the joints)."""
+    rig is the pool's; the shape (`betas`) is the first drawn frame's hand (stage 1 reads
+    only the joints)."""
     drawn = [_window_arrays(Window(clip, window.side, t), cfg, frames=1) for clip, t in (pool[i] for i in rng.integers(len(pool), size=cfg.frames))]
     parts, rig = [arrays for arrays, _ in drawn], drawn[0][1]
     arrays = {k: parts[0][k] if k == "betas" else np.concatenate([part[k] for part in parts]) for k in parts[0]}
