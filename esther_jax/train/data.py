@@ -146,7 +146,9 @@ def _clip_arrays(clip: str, side: str, target_file: str):
     crops = clips.load_crops(clips.crops_file(folder, side), mmap=True)
     kind = "gt" if target_file.endswith("gt.npz") else "labels"
     target = clips.load_npz(target_file, kind)
-    rig = StereoRig.from_json(folder / "rig.json")
+    # unnamed: the name is static in the rig's pytree, and HOT3D names the rig of every clip,
+    # which would compile `_example` once per clip
+    rig = dataclasses.replace(StereoRig.from_json(folder / "rig.json"), name="")
     return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], rig, target, kind
 
 
