@@ -268,13 +268,12 @@ def learn(args) -> None:
     write_json(out / "learning.json", result)
     print(json.dumps(result, indent=1))
     print(f"{'':<22} {'P-MPJPE':>8} {'PA-MPJPE':>9} {'wrist':>7} {'2D px':>6} {'jitter':>7} {'gt jitter':>9} {'F1':>5}  (mm, m/s^2)")
-    for views in ("both", "right dropped"):
-        r = result[views]
-        print(f"{'ESTHER ' + views:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
-              f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}")  # fmt: skip
-    r = result["training windows, both"]
-    print(f"{'ESTHER on its training':<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
-          f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}  ({r['windows']} training windows, both views)")  # fmt: skip
+    trained = f"  ({result['training windows, both']['windows']} training windows, both views)"
+    rows = (("ESTHER both", "both", ""), ("ESTHER right dropped", "right dropped", ""), ("ESTHER on its training", "training windows, both", trained))
+    for label, key, note in rows:
+        r = result[key]
+        print(f"{label:<22} {r['p_mpjpe_mm']:8.1f} {r['pa_mpjpe_mm']:9.1f} {r['wrist_mm']:7.1f} {r['keypoints_2d_px']:6.1f} "
+              f"{r['jitter']:7.2f} {r['gt_jitter']:9.2f} {r['onscreen_f1']:5.2f}{note}")  # fmt: skip
     b = result["baseline"]
     print(f"{'trivial baseline':<22} {b['p_mpjpe_mm']:8.1f} {b['pa_mpjpe_mm']:9.1f} {b['wrist_mm']:7.1f} {b['keypoints_2d_px']:6.1f}")
     w = result["wrist_axes"]
