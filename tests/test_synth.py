@@ -97,6 +97,23 @@ def test_hand_skin_paints_nails_creases_and_pale_palms_where_they_belong():
     assert line_lum[np.abs(t) < 0.001].min() < 0.85 * np.median(line_lum[np.abs(t) > 0.005])
 
 
+def test_skin_tones_are_measured_skin_and_the_grain_is_fixed_to_the_surface():
+    import cv2
+
+    lab = cv2.cvtColor(render.SKIN_TONES[None].astype(np.float32), cv2.COLOR_RGB2Lab)[0]
+    np.testing.assert_allclose(lab, render.SKIN_TONES_LAB, atol=0.5)  # the sRGB albedos are the CIELAB ones
+    lightness, chroma = lab[:, 0], np.hypot(lab[:, 1], lab[:, 2])
+    hue = np.degrees(np.arctan2(lab[:, 2], lab[:, 1]))
+    assert np.all(np.diff(lightness) < 0) and lightness[0] > 70 and lightness[-1] < 30, "very light to very dark"
+    assert np.all((chroma > 14) & (chroma < 27)) and np.all((hue > 35) & (hue < 55)), "pale red-orange, as skin is"
+    points = np.random.default_rng(0).uniform(-0.05, 0.05, size=(4000, 3))
+    grain = render._skin_grain(points)
+    np.testing.assert_array_equal(grain, render._skin_grain(points.copy()))  # a function of the point alone
+    assert grain.min() >= 0.96 and grain.max() <= 1.04 and abs(grain.mean() - 1) < 0.003 and grain.std() > 0.015
+    same_cell = np.floor(points / 0.0015) * 0.0015 + 0.0007
+    np.testing.assert_array_equal(render._skin_grain(same_cell), grain)  # constant within a 1.5 mm cell
+
+
 def test_forearms_leave_the_wrist_outward_and_are_mirror_images():
     rng = synth.clip_rng(5, 0)
     m = motion.sample_clip(rng, cameras.rig_preset("esther"), 4)

@@ -10,13 +10,15 @@ token's camera motion). Grayscale rigs (HOT3D) get the luminance.
 Appearance is made for real detectors to read (a detector trained on photographs must
 find the rendered hands, `benchmarks/detect.py`):
 
-- *Skin* (`Mesh.material == "skin"`): wrap diffuse lighting with a red-shifted
-  terminator (light scattered under the skin), a soft Blinn-Phong sheen, low-frequency
-  mottling. On the hand (`Mesh.rest` given) the details are painted procedurally in the
-  built-in hand's rest pose, so they follow the skin at any pose and resolution
-  (`hand_skin_albedo`): nails with a pale free edge and a glossy finish, palmar flexion
-  creases at the finger joints and the palm's main lines, knuckle wrinkles, and palms
-  paler than the back of the hand (strongly so for dark skin).
+- *Skin* (`Mesh.material == "skin"`): albedos of measured skin (`SKIN_TONES_LAB`), wrap
+  diffuse lighting with a red-shifted terminator (light scattered under the skin), a
+  broad Blinn-Phong sheen (skin's oily surface layer: 0.18 of the key light at its peak,
+  exponent 10), low-frequency mottling. On the hand (`Mesh.rest` given) the details are
+  painted procedurally in the built-in hand's rest pose, so they follow the skin at any
+  pose and resolution (`hand_skin_albedo`): a fine grain (pores), nails with a pale free
+  edge and a glossy finish, palmar flexion creases at the finger joints and the palm's
+  main lines, knuckle wrinkles, and palms paler than the back of the hand (strongly so
+  for dark skin).
 - *Lighting*: a key light of random direction and colour temperature, a sky / ground
   hemisphere fill, and screen-space ambient occlusion from the depth buffer, which
   darkens the gaps between fingers and where a finger passes in front of the palm.
@@ -40,10 +42,16 @@ from .. import mano
 from ..cameras import AbstractCamera
 from ..mano.constants import FINGER_CHAINS, FINGER_ORDER
 
-SKIN_TONES = np.array(
-    [[255, 224, 196], [241, 194, 161], [224, 172, 105], [198, 134, 66], [141, 85, 36], [92, 59, 38]], np.float32
-) / 255.0
-"""sRGB albedos from very light to very dark skin (sampled and jittered per clip)."""
+SKIN_TONES_LAB = np.array(
+    [[72.0, 15.0, 16.0], [65.71, 18.13, 17.81], [56.0, 16.5, 16.5], [47.0, 15.0, 15.3], [37.99, 13.56, 14.06], [28.0, 11.0, 11.0]],
+    np.float32,
+)
+"""CIELAB skin albedos from very light to very dark: the ColorChecker's two skin patches,
+whose reflectances were chosen to match real skin ("light skin" L* 65.71 and "dark skin"
+37.99, BabelColor's average of published measurements), and tones between and beyond
+them of the same hue and chroma (a*, b* 11 to 18: skin is a pale red-orange)."""
+SKIN_TONES = cv2.cvtColor(SKIN_TONES_LAB[None], cv2.COLOR_Lab2RGB)[0]
+"""`SKIN_TONES_LAB` as sRGB albedos in [0, 1] (sampled and jittered per clip)."""
 BACKGROUND_DEPTH_M = 1.5
 DISPLAY_GAMMA = 2.2
 """Display encoding: linear radiance r is written as r ** (1 / DISPLAY_GAMMA) (module docstring, *Camera*)."""
@@ -95,7 +103,8 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 def sample_scene(rng: np.random.Generator, grayscale: bool = False, texture_size: int = 1024) -> Scene:
     """A random scene: skin tone, light, a textured background (low-frequency colour
     fields, rectangles and strokes like shelves, tables and clutter, and fine grain, at a
-    random saturation: indoor scenes are mostly muted), metered exposure."""
+    random saturation: indoor scenes are mostly muted, and the strokes' random colours keep
+    only 8 to 40 % of their chroma), metered exposure."""
     skin = SKIN_TONES[rng.integers(len(SKIN_TONES))] * rng.uniform(0.92, 1.08, size=3)
     light = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-1.0, -0.3), rng.uniform(-1.0, -0.4)])
     warmth = rng.uniform(-1.0, 1.0)  # cool daylight .. warm tungsten
@@ -113,7 +122,7 @@ def sample_scene(rng: np.random.Generator, grayscale: bool = False, texture_size
             cv2.line(texture, p0, p1, colour, int(rng.integers(1, 10)))
     texture += rng.normal(scale=0.03, size=texture.shape).astype(np.float32)
     grey = _luminance(texture)[..., None]
-    texture = grey + rng.uniform(0.2, 1.0) * (texture - grey)
+    texture = grey + rng.uniform(0.08, 0.4) * (texture - grey)
     texture = cv2.GaussianBlur(np.clip(texture, 0, 1), (3, 3), 0.8)
     skin = np.clip(skin, 0, 1)
     # centre-weighted metering: the hand is a good part of what the camera exposes for
@@ -313,6 +322,15 @@ def _mottle(points: np.ndarray) -> np.ndarray:
     return 1.0 + 0.05 * np.cos(points @ (directions * k[:, None]).T + phase).mean(axis=1) * np.sqrt(2.0)
 
 
+def _skin_grain(points: np.ndarray, cell_m: float = 0.0015, amplitude: float = 0.08) -> np.ndarray:
+    """(N,) fine multiplicative skin grain about 1 (pores, fine lines): an independent value
+    in [1 - amplitude / 2, 1 + amplitude / 2] for each `cell_m` cube of `points` (hashed
+    lattice cells, so it is fixed to the surface when `points` are rest coordinates)."""
+    cell = np.floor(points / cell_m).astype(np.int64)
+    hashed = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
+    return 1.0 + amplitude * (hashed % 1000 / 1000.0 - 0.5)
+
+
 def hand_skin_albedo(rest: np.ndarray, rest_normals: np.ndarray, skin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Skin details painted on the built-in right hand at rest (see the module docstring).
 
@@ -340,7 +358,7 @@ def hand_skin_albedo(rest: np.ndarray, rest_normals: np.ndarray, skin: np.ndarra
     darkness = float(np.clip(1.0 - _luminance(skin) / 0.8, 0.0, 1.0))
     palm_tone = skin + (np.array([0.86, 0.64, 0.55]) - skin) * (0.15 + 0.45 * darkness)
     albedo = skin[None] + palmar[:, None] * (palm_tone - skin)[None]
-    albedo = albedo * _mottle(rest)[:, None]
+    albedo = albedo * (_mottle(rest) * _skin_grain(rest))[:, None]
 
     shade = np.ones(len(rest))
     joints, tips = h["joints"], h["tips"]
@@ -445,7 +463,7 @@ def _shade(scene: Scene, n: np.ndarray, points: np.ndarray, albedo: np.ndarray, 
     half = scene.light_dir[None] + view
     half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-9)
     ndh = np.clip(np.einsum("pk,pk->p", n, half), 0.0, 1.0)
-    sheen = np.where(skin, 0.07 * ndh**14, 0.0) + 0.35 * gloss * ndh**60
+    sheen = np.where(skin, 0.18 * ndh**10, 0.0) + 0.35 * gloss * ndh**60
     return albedo * (fill + (1.0 - scene.ambient) * diffuse) + sheen[:, None] * scene.light_colour
 
 

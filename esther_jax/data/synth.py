@@ -27,7 +27,7 @@ from ..files import check_out_dir, exclusive_lock, read_json, remove_stale_parti
 from . import detector, flow, motion, render
 
 CROP_SIZE = 224
-ENGINE_REVISION = 4
+ENGINE_REVISION = 5
 """Incremented when the engine makes other clips from the same settings and seed (motion,
 built-in hand, renderer); `synth.json` records it, and a record without it was made at
 revision 1. Revision 2: the grasp archetypes' thumbs solved for their grasps' contacts
@@ -36,7 +36,11 @@ pixels beyond the source image are black (the renderer drew the scene there, whi
 camera records and a crop cut from a recording, `esther crops`, never shows). Revision 4:
 so are crop pixels whose rays point behind the source camera (`crops.rectification_map`:
 hc crops turned towards the edge of a fisheye's field, which `project` mirrored back into
-the image and counted as seen; offbb crops are unchanged)."""
+the image and counted as seen; offbb crops are unchanged). Revision 5: skin of measured
+albedos, with a broader sheen and a fine grain on the hand (`render.SKIN_TONES_LAB`,
+`render._shade`, `render.hand_skin_albedo`), and more muted backgrounds
+(`render.sample_scene`); the pixels only: motion, keypoints and ground truth are those of
+revision 4."""
 
 
 @dataclasses.dataclass(frozen=True)
