@@ -29,7 +29,7 @@ with the simulated detector.
    found under their own side, only under the other (handedness swapped), or not found.
 
 Everything runs on the CPU, one process; the synthetic clips are made in `--out`
-(default: a temporary folder). About 10 minutes on a 2-core machine.
+(default: a temporary folder). About 5 minutes on a 2-core machine.
 """
 
 import argparse

@@ -108,7 +108,6 @@ def test_skin_tones_are_measured_skin_and_the_grain_is_fixed_to_the_surface():
     assert np.all((chroma > 14) & (chroma < 27)) and np.all((hue > 35) & (hue < 55)), "pale red-orange, as skin is"
     points = np.random.default_rng(0).uniform(-0.05, 0.05, size=(4000, 3))
     grain = render._skin_grain(points)
-    np.testing.assert_array_equal(grain, render._skin_grain(points.copy()))  # a function of the point alone
     assert grain.min() >= 0.96 and grain.max() <= 1.04 and abs(grain.mean() - 1) < 0.003 and grain.std() > 0.015
     same_cell = np.floor(points / 0.0015) * 0.0015 + 0.0007
     np.testing.assert_array_equal(render._skin_grain(same_cell), grain)  # constant within a 1.5 mm cell

@@ -103,8 +103,8 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 def sample_scene(rng: np.random.Generator, grayscale: bool = False, texture_size: int = 1024) -> Scene:
     """A random scene: skin tone, light, a textured background (low-frequency colour
     fields, rectangles and strokes like shelves, tables and clutter, and fine grain, at a
-    random saturation: indoor scenes are mostly muted, and the strokes' random colours keep
-    only 8 to 40 % of their chroma), metered exposure."""
+    random saturation: indoor scenes are mostly muted, so the texture keeps only 8 to 40 %
+    of its random colours' distance from grey), metered exposure."""
     skin = SKIN_TONES[rng.integers(len(SKIN_TONES))] * rng.uniform(0.92, 1.08, size=3)
     light = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-1.0, -0.3), rng.uniform(-1.0, -0.4)])
     warmth = rng.uniform(-1.0, 1.0)  # cool daylight .. warm tungsten
@@ -323,9 +323,10 @@ def _mottle(points: np.ndarray) -> np.ndarray:
 
 
 def _skin_grain(points: np.ndarray, cell_m: float = 0.0015, amplitude: float = 0.08) -> np.ndarray:
-    """(N,) fine multiplicative skin grain about 1 (pores, fine lines): an independent value
-    in [1 - amplitude / 2, 1 + amplitude / 2] for each `cell_m` cube of `points` (hashed
-    lattice cells, so it is fixed to the surface when `points` are rest coordinates)."""
+    """(N,) fine multiplicative skin grain about 1 (pores, fine lines) at `points` (N, 3),
+    metres: an independent value in [1 - amplitude / 2, 1 + amplitude / 2) for each `cell_m`
+    cube (hashed lattice cells, so it is fixed to the surface when `points` are rest
+    coordinates; every hand has the same pattern)."""
     cell = np.floor(points / cell_m).astype(np.int64)
     hashed = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
     return 1.0 + amplitude * (hashed % 1000 / 1000.0 - 0.5)

@@ -33,9 +33,10 @@ What MediaPipe returns, and what we derive from it:
   kept as weak evidence; `chirality` is the geometric evidence of its 3D world landmarks
   (`handedness.chirality`), which follows the image content, mirrored or not.
 - The wrist is MediaPipe's own: on renders of the built-in hand (`benchmarks/detect.py`)
-  it sits distal of the MANO-style wrist joint, 14 mm on average in frontal views and
-  about 15 px median on 224 px egocentric crops (fingers: 5 to 7 px). We pass it on unchanged
-  (no correction learnt from our own renders), so the teacher fits it as given.
+  it sits distal of the MANO-style wrist joint, by 0.15 of the wrist-to-middle-knuckle
+  length (median, egocentric crops), about 12 px median error on 224 px crops with the hand
+  half the crop (fingers: 8.5 px). We pass it on unchanged (no correction learnt from our
+  own renders), so the teacher fits it as given.
 """
 
 import importlib.metadata
