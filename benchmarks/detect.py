@@ -12,17 +12,20 @@ with the simulated detector.
    imperceptible change of the pixels, the frames before or after mp4 encoding, moved the
    count by 13 of 160 crops), a 224 px crop around its projected
    ground-truth keypoints (padding 1.25, 2.0 and 2.5 of the keypoints' box, `CROP_PADDINGS`)
-   of the rendered frame, run through MediaPipe (image mode). Detection rate (the hand
+   of the rendered frame, run through MediaPipe (image mode), on the crop alone and with its
+   mirror pass (`MediaPipeHands`, the crop and its mirror). Detection rate (the hand
    itself found: median keypoint error under a quarter of its box), the failures split
    into "nothing detected" and "a hand detected in the wrong place", and the median over
    found hands of the median 2D keypoint error (crop px) against the projected ground
    truth, with the wrist's and the thumb's own medians (the keypoints a detector reads
-   least well from our renders). Target: >= 80 % detected, median error <= 8 px.
+   least well from our renders), and the rate for the left and the right hands apart (the
+   detector is not mirror-symmetric). Target: >= 80 % detected, median error <= 8 px.
 3. Canonical views (the renderer alone, no egocentric viewpoint): the built-in hand in
    each natural-pose archetype, palm or back to the camera, upright or rolled 35 degrees,
    light and dark skin, 42 cm away, filling about half of a 224 px image over a sampled
    background. Detection rate and median 2D error per skin tone.
-4. Full frames end to end: `detect_clip` (MediaPipe, video mode) on the rendered videos of
+4. Full frames end to end: `detect_clip` (MediaPipe, video mode, without and with the mirror
+   pass: `mediapipe:direct`, `mediapipe`) on the rendered videos of
    `--clips` clips of `--frames` frames, then the teacher; coverage (labelled over on-screen hand-frames), P-MPJPE and
    wrist error (mm) against the ground truth, next to the teacher on the simulated
    detector's keypoints of the same clips; and where the on-screen hand-frames went:
@@ -79,12 +82,14 @@ def found_hand(uv: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return error < 0.25 * (truth.max(axis=-2) - truth.min(axis=-2)).max(axis=-1)
 
 
-def crop_detection(clip_dirs: list[pathlib.Path], padding: float) -> dict:
+def crop_detection(clip_dirs: list[pathlib.Path], padding: float, mirror_pass: bool) -> dict:
     """MediaPipe on a CROP px crop around every on-screen, in-view hand (its projected
     ground-truth keypoints' box, `padding` x its longer side). The hand counts as found when
     a detection is it (`found_hand`)."""
     found, total, missed, errors, per_keypoint = 0, 0, 0, [], []
-    with MediaPipeHands(video=False) as detector:
+    found_per_side, total_per_side = dict.fromkeys(clips.SIDES, 0), dict.fromkeys(clips.SIDES, 0)
+    seconds = 0.0
+    with MediaPipeHands(video=False, mirror_pass=mirror_pass) as detector:
         for clip in clip_dirs:
             rig = StereoRig.from_json(clip / "rig.json")
             videos = [clips.read_video(clip / "video" / f"{v}.mp4") for v in ("left", "right")]
@@ -101,13 +106,18 @@ def crop_detection(clip_dirs: list[pathlib.Path], padding: float) -> dict:
                         M = crops.crop_affine(jnp.asarray(box), CROP, padding)
                         image = crops.warp_crop(videos[view][t], box, CROP, padding)
                         truth = uv[view, t] @ M[:, :2].T + M[:, 2]
+                        image = np.asarray(image)
+                        tic = time.perf_counter()
                         hands = detector.detect(image)
+                        seconds += time.perf_counter() - tic
                         total += 1
+                        total_per_side[side] += 1
                         missed += not hands
                         best = min(hands, key=lambda h: np.median(np.linalg.norm(h.uv - truth, axis=-1)), default=None)
                         if best is not None and found_hand(best.uv, truth):
                             distances = np.linalg.norm(best.uv - truth, axis=-1)
                             found += 1
+                            found_per_side[side] += 1
                             errors.append(np.median(distances))
                             per_keypoint.append(distances)
     median = lambda values: float(np.median(values)) if len(values) else None  # noqa: E731
@@ -116,7 +126,9 @@ def crop_detection(clip_dirs: list[pathlib.Path], padding: float) -> dict:
             "nothing_detected": missed, "detected_elsewhere": total - found - missed,
             "median_error_px": median(errors), "wrist_median_error_px": median(per_keypoint[:, 0]),
             "thumb_median_error_px": median(per_keypoint[:, 1:5].ravel()),
-            "finger_median_error_px": median(per_keypoint[:, 5:].ravel())}  # fmt: skip
+            "finger_median_error_px": median(per_keypoint[:, 5:].ravel()),
+            "detection_rate_per_side": {s: found_per_side[s] / max(total_per_side[s], 1) for s in clips.SIDES},
+            "ms_per_crop": 1000 * seconds / max(total, 1)}  # fmt: skip
 
 
 def canonical_views() -> dict:
@@ -131,7 +143,7 @@ def canonical_views() -> dict:
     camera = PinholeCamera(260.0, 260.0, (CROP - 1) / 2, (CROP - 1) / 2, CROP, CROP)
     upright = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # model x (wrist side) -> image down
     rows = {}
-    with MediaPipeHands(video=False) as detector:
+    with MediaPipeHands(video=False, mirror_pass=False) as detector:  # the renderer alone: right hands, one look
         for tone, skin in (("light", render.SKIN_TONES[1]), ("dark", render.SKIN_TONES[4])):
             scene = dataclasses.replace(render.sample_scene(np.random.default_rng(0)), skin=skin)
             found, errors = 0, []
@@ -209,23 +221,24 @@ def _where_hands_went(clip_dirs: list[pathlib.Path], detected_root: pathlib.Path
     return counts
 
 
-def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path) -> dict:
+def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path, detector: str) -> dict:
+    """`detect_clip` with `detector` on every clip, then the teacher on its keypoints."""
+    detected_root, labels_root = work / f"detected_{detector.replace(':', '_')}", work / f"labels_{detector.replace(':', '_')}"
     detected = []
     frames_with_hands = 0
+    tic = time.perf_counter()
     for clip in clip_dirs:
-        out = work / "detected" / clip.name
-        report = detect_clip(clip / "video" / "left.mp4", clip / "video" / "right.mp4", clip / "rig.json", out, progress=False)
-        frames_with_hands += report["frames_with_hands"]["mediapipe"]
+        out = detected_root / clip.name
+        report = detect_clip(clip / "video" / "left.mp4", clip / "video" / "right.mp4", clip / "rig.json", out, detectors=(detector,), progress=False)
+        frames_with_hands += report["frames_with_hands"][detector]
         detected.append(out)
-    rows = {"mediapipe_frames_with_hands": frames_with_hands, "hand_frames": _where_hands_went(clip_dirs, work / "detected")}
+    rows = {"frames_with_hands": frames_with_hands, "detect_s": time.perf_counter() - tic, "hand_frames": _where_hands_went(clip_dirs, detected_root)}
     with_keypoints = [c for c in detected if any(clips.hand_file(c, s, "keypoints").is_file() for s in clips.SIDES)]
     if with_keypoints:
-        label_clips(with_keypoints, work / "labels_mediapipe")
-        rows["mediapipe"] = _label_scores(clip_dirs, work / "labels_mediapipe")
+        label_clips(with_keypoints, labels_root)
+        rows["labels"] = _label_scores(clip_dirs, labels_root)
     else:
-        rows["mediapipe"] = {"coverage": 0.0, "p_mpjpe_mm": None, "wrist_mm": None, "hand_frames": 0}
-    label_clips(clip_dirs, work / "labels_simulated")
-    rows["simulated"] = _label_scores(clip_dirs, work / "labels_simulated")
+        rows["labels"] = {"coverage": 0.0, "p_mpjpe_mm": None, "wrist_mm": None, "hand_frames": 0}
     return rows
 
 
@@ -251,23 +264,31 @@ def main() -> None:
               f"{control['worst_keypoint_error_px']:.1f} px (reference tolerance 20 px)")  # fmt: skip
     px = lambda v: f"{v:.1f} px" if v is not None else "n/a"  # noqa: E731
     for padding in CROP_PADDINGS:
-        crop = crop_detection(crop_clips, padding)
-        print(f"hand-centred {CROP} px crops of renders, padding {padding}: {crop['detected']}/{crop['hand_crops']} detected "
-              f"({crop['detection_rate']:.0%}; target >= 80 %; missed: {crop['nothing_detected']} nothing detected, "
-              f"{crop['detected_elsewhere']} a hand in the wrong place), median 2D error {px(crop['median_error_px'])} "
-              f"(target <= 8 px; wrist {px(crop['wrist_median_error_px'])}, thumb {px(crop['thumb_median_error_px'])}, "
-              f"fingers {px(crop['finger_median_error_px'])})")  # fmt: skip
+        for mirror_pass, looks in ((False, "the image"), (True, "the image and its mirror")):
+            crop = crop_detection(crop_clips, padding, mirror_pass)
+            per_side = crop["detection_rate_per_side"]
+            print(f"hand-centred {CROP} px crops of renders, padding {padding}, MediaPipe on {looks}: "
+                  f"{crop['detected']}/{crop['hand_crops']} detected ({crop['detection_rate']:.0%}; target >= 80 %; "
+                  f"left hands {per_side['left']:.0%}, right {per_side['right']:.0%}; missed: {crop['nothing_detected']} "
+                  f"nothing detected, {crop['detected_elsewhere']} a hand in the wrong place), median 2D error "
+                  f"{px(crop['median_error_px'])} (target <= 8 px; wrist {px(crop['wrist_median_error_px'])}, "
+                  f"thumb {px(crop['thumb_median_error_px'])}, fingers {px(crop['finger_median_error_px'])}); "
+                  f"{crop['ms_per_crop']:.1f} ms per crop")  # fmt: skip
     for tone, row in canonical_views().items():
         print(f"canonical views, {tone} skin: {row['detected']}/{row['views']} detected, median 2D error {px(row['median_error_px'])}")
-    rows = end_to_end(clip_dirs, work)
-    went = rows["hand_frames"]
-    print(f"full frames, MediaPipe video mode: hands in {rows['mediapipe_frames_with_hands']} frames; of "
-          f"{sum(went.values())} on-screen hand-frames, {went['own_side']} found under their own side, "
-          f"{went['other_side_only']} only under the other side (handedness swapped), {went['not_found']} not found")  # fmt: skip
+    rows = {}
+    for detector in ("mediapipe:direct", "mediapipe"):
+        run = end_to_end(clip_dirs, work, detector)
+        went = run["hand_frames"]
+        print(f"full frames, {detector} (video mode, {run['detect_s']:.0f} s for {len(clip_dirs)} clips): hands in {run['frames_with_hands']} frames; of "
+              f"{sum(went.values())} on-screen hand-frames, {went['own_side']} found under their own side, "
+              f"{went['other_side_only']} only under the other side (handedness swapped), {went['not_found']} not found")  # fmt: skip
+        rows[detector] = run["labels"]
+    label_clips(clip_dirs, work / "labels_simulated")
+    rows["simulated"] = _label_scores(clip_dirs, work / "labels_simulated")
     print("| keypoints | coverage | P-MPJPE (mm) | wrist (mm) |\n|---|---|---|---|")
-    for name in ("mediapipe", "simulated"):
-        r = rows[name]
-        fmt = lambda v: f"{v:.1f}" if v is not None else "n/a"  # noqa: E731
+    fmt = lambda v: f"{v:.1f}" if v is not None else "n/a"  # noqa: E731
+    for name, r in rows.items():
         print(f"| {name} | {r['coverage']:.0%} | {fmt(r['p_mpjpe_mm'])} | {fmt(r['wrist_mm'])} |")
     print(f"total {time.perf_counter() - start:.0f} s; work folder {work}")
 

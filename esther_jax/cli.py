@@ -61,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     detect.add_argument("--rig", required=True, help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
     detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it)")
     detect.add_argument("--detector", action="append", metavar="NAME",
-                        help="mediapipe (default; the detect extra), onnx:MODEL.onnx (a YOLO-pose hand model you own) or "
+                        help="mediapipe (default; the detect extra; each image and its mirror), mediapipe:direct (the image only, "
+                             "half the time), onnx:MODEL.onnx (a YOLO-pose hand model you own) or "
                              "vitpose:MODEL.onnx[@BOXES] (a top-down heatmap model you own, on the boxes of the detector BOXES, "
                              "default mediapipe); repeat for several detectors (the D axis of keypoints.npz)")  # fmt: skip
     detect.add_argument("--fps", type=float, help="frame rate (read from the videos when omitted; needed for image folders)")

@@ -7,6 +7,7 @@ interrupted run must resume without redoing frames. MediaPipe is tested on real 
 (`../shared/data/mediapipe_oracle/`) when it is installed and the data is present.
 """
 
+import dataclasses
 import importlib.util
 import json
 import pathlib
@@ -19,7 +20,7 @@ import pytest
 from esther_jax import cameras, clips, crops
 from esther_jax.data import motion, synth
 from esther_jax.detect import Candidates, HandDetection, assign_hands, chirality, detect_clip
-from esther_jax.detect.base import keypoint_box
+from esther_jax.detect.base import keypoint_box, merge_mirror_pass, unmirror
 from esther_jax.files import exclusive_lock
 
 from .helpers import mixed_rig
@@ -95,6 +96,30 @@ def test_chirality_is_positive_for_right_hands_and_flips_with_mirroring(two_hand
     mirror = np.array([-1.0, 1.0, 1.0])
     np.testing.assert_allclose(chirality(right * mirror), -chirality(right), atol=1e-12)
     assert chirality(np.full((21, 3), np.nan)) == 0.0
+
+
+def test_the_mirror_pass_adds_only_the_hands_the_direct_look_missed():
+    rng = np.random.default_rng(0)
+    width = 640
+
+    def hand(centre, score, size=80.0):
+        uv = centre + size * rng.uniform(-0.5, 0.5, (21, 2))
+        return HandDetection(uv, np.ones(21), keypoint_box(uv, np.ones(21)), score, chirality=0.4, label=1, label_score=score)
+
+    a, b = hand(np.array([150.0, 200.0]), 0.7), hand(np.array([450.0, 220.0]), 0.9)
+    back = unmirror(a, width)
+    np.testing.assert_allclose(back.uv[:, 0], width - 1 - a.uv[:, 0])
+    np.testing.assert_allclose(back.uv[:, 1], a.uv[:, 1])
+    assert back.box[0] < back.box[2] and np.all(back.uv.min(0) >= back.box[:2]) and np.all(back.uv.max(0) <= back.box[2:])
+    assert (back.chirality, back.label, back.label_score) == (-0.4, -1, a.label_score)
+    np.testing.assert_allclose(unmirror(back, width).uv, a.uv)
+    np.testing.assert_allclose(unmirror(back, width).box, a.box)
+
+    a_again = dataclasses.replace(a, uv=a.uv + 3.0, score=0.95)  # the same hand, seen again in the mirror
+    merged = merge_mirror_pass([a], [a_again, b], max_hands=2)
+    assert merged[0] is b and merged[1] is a  # the direct look's hand kept as found, the missed one added, by score
+    assert merge_mirror_pass([a], [a_again, b], max_hands=1) == [b]
+    assert merge_mirror_pass([], [b], max_hands=2) == [b] and merge_mirror_pass([a], [], max_hands=2) == [a]
 
 
 @pytest.mark.parametrize("rig_name", ["esther", "mixed"])
@@ -398,6 +423,8 @@ def test_mediapipe_on_a_real_photo_matches_the_reference(oracle):
     with MediaPipeHands(video=False) as detector:
         hands = detector.detect(image)
         mirrored = detector.detect(np.ascontiguousarray(image[:, ::-1]))
+    with MediaPipeHands(video=False, mirror_pass=False) as detector:
+        one_look = detector.detect(image)
     assert len(hands) == 2
     for reference in expected:
         errors = [np.abs(h.uv + 0.5 - reference).max() for h in hands]
@@ -408,6 +435,8 @@ def test_mediapipe_on_a_real_photo_matches_the_reference(oracle):
     # Both hands of hands.jpg are left hands (backs towards the camera, thumbs on the right
     # when the fingers point up): geometry says so, and says "right" on the mirrored image.
     assert all(h.chirality < 0 for h in hands) and len(mirrored) == 2 and all(h.chirality > 0 for h in mirrored)
+    # Both hands found in one look: the mirror pass adds nothing and changes nothing.
+    assert len(one_look) == 2 and all(any(np.array_equal(h.uv, o.uv) for o in one_look) for h in hands)
 
 
 @needs_mediapipe

@@ -125,7 +125,8 @@ class _ViewGeometry:
 
 
 def make_detector(name: str) -> KeypointDetector:
-    """A detector by name: `mediapipe`; `onnx:PATH` (a YOLO-pose style ONNX model);
+    """A detector by name: `mediapipe` (with its mirror pass, `MediaPipeHands`);
+    `mediapipe:direct` (without it: half the time); `onnx:PATH` (a YOLO-pose style ONNX model);
     `vitpose:PATH` (a top-down heatmap ONNX model, ViTPose and the like) on MediaPipe's
     boxes, or `vitpose:PATH@BOXES` on the boxes of the detector named BOXES (e.g.
     `vitpose:vitpose_hand.onnx@onnx:yolo11_hand.onnx`, the paper's pair)."""
@@ -133,6 +134,10 @@ def make_detector(name: str) -> KeypointDetector:
         from .mediapipe import MediaPipeHands
 
         return MediaPipeHands(video=True)
+    if name == "mediapipe:direct":
+        from .mediapipe import MediaPipeHands
+
+        return MediaPipeHands(video=True, mirror_pass=False)
     if name.startswith("onnx:"):
         from .onnx import OnnxPoseDetector
 
@@ -149,7 +154,9 @@ def make_detector(name: str) -> KeypointDetector:
         except Exception:
             box_source.close()
             raise
-    raise ValueError(f"unknown detector {name!r}; use 'mediapipe', 'onnx:MODEL.onnx' or 'vitpose:MODEL.onnx[@BOX_DETECTOR]'")
+    raise ValueError(
+        f"unknown detector {name!r}; use 'mediapipe', 'mediapipe:direct', 'onnx:MODEL.onnx' or 'vitpose:MODEL.onnx[@BOX_DETECTOR]'"
+    )
 
 
 def _state_dir(out: pathlib.Path, index: int) -> pathlib.Path:
