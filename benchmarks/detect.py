@@ -223,7 +223,8 @@ def _where_hands_went(clip_dirs: list[pathlib.Path], detected_root: pathlib.Path
 
 def end_to_end(clip_dirs: list[pathlib.Path], work: pathlib.Path, detector: str) -> dict:
     """`detect_clip` with `detector` on every clip, then the teacher on its keypoints."""
-    detected_root, labels_root = work / f"detected_{detector.replace(':', '_')}", work / f"labels_{detector.replace(':', '_')}"
+    folder = detector.replace(":", "_")
+    detected_root, labels_root = work / f"detected_{folder}", work / f"labels_{folder}"
     detected = []
     frames_with_hands = 0
     tic = time.perf_counter()

@@ -11,6 +11,7 @@ import dataclasses
 import importlib.util
 import json
 import pathlib
+from types import SimpleNamespace
 
 import cv2
 import jax.numpy as jnp
@@ -20,7 +21,7 @@ import pytest
 from esther_jax import cameras, clips, crops
 from esther_jax.data import motion, synth
 from esther_jax.detect import Candidates, HandDetection, assign_hands, chirality, detect_clip
-from esther_jax.detect.base import keypoint_box, merge_mirror_pass, unmirror
+from esther_jax.detect.base import keypoint_box, merge_mirror_pass, same_hand, unmirror
 from esther_jax.files import exclusive_lock
 
 from .helpers import mixed_rig
@@ -100,26 +101,37 @@ def test_chirality_is_positive_for_right_hands_and_flips_with_mirroring(two_hand
 
 def test_the_mirror_pass_adds_only_the_hands_the_direct_look_missed():
     rng = np.random.default_rng(0)
-    width = 640
+    height, width = 48, 80
 
-    def hand(centre, score, size=80.0):
+    def hand(centre, score, size=20.0, wrist=None):
         uv = centre + size * rng.uniform(-0.5, 0.5, (21, 2))
+        uv[0] = uv[0] if wrist is None else wrist
         return HandDetection(uv, np.ones(21), keypoint_box(uv, np.ones(21)), score, chirality=0.4, label=1, label_score=score)
 
-    a, b = hand(np.array([150.0, 200.0]), 0.7), hand(np.array([450.0, 220.0]), 0.9)
-    back = unmirror(a, width)
-    np.testing.assert_allclose(back.uv[:, 0], width - 1 - a.uv[:, 0])
-    np.testing.assert_allclose(back.uv[:, 1], a.uv[:, 1])
+    # A pixel at column c is at column W - 1 - c of the mirrored image (np.flip), and back.
+    image = np.zeros((height, width), np.uint8)
+    image[30, 17] = 255
+    row, column = np.argwhere(np.flip(image, axis=1) == 255)[0]
+    seen = hand(np.array([column, row], float), 0.8, wrist=(column, row))  # its wrist on the marker
+    back = unmirror(seen, width)
+    np.testing.assert_allclose(back.uv[0], [17, 30])
+    np.testing.assert_allclose(back.uv[:, 1], seen.uv[:, 1])
     assert back.box[0] < back.box[2] and np.all(back.uv.min(0) >= back.box[:2]) and np.all(back.uv.max(0) <= back.box[2:])
-    assert (back.chirality, back.label, back.label_score) == (-0.4, -1, a.label_score)
-    np.testing.assert_allclose(unmirror(back, width).uv, a.uv)
-    np.testing.assert_allclose(unmirror(back, width).box, a.box)
+    assert (back.chirality, back.label, back.label_score) == (-0.4, -1, seen.label_score)
+    np.testing.assert_allclose(unmirror(back, width).uv, seen.uv)
+    np.testing.assert_allclose(unmirror(back, width).box, seen.box)
 
-    a_again = dataclasses.replace(a, uv=a.uv + 3.0, score=0.95)  # the same hand, seen again in the mirror
+    a, b = hand(np.array([20.0, 24.0]), 0.7), hand(np.array([60.0, 24.0]), 0.9)
+    a_again = dataclasses.replace(a, uv=a.uv + 1.0, score=0.95)  # the same hand, seen again in the mirror
+    a_neighbour = dataclasses.replace(a, uv=a.uv + [8.0, 0.0])  # another hand, 8 px away (the hand spans ~19 px)
+    assert same_hand(a.uv, a_again.uv) and not same_hand(a.uv, a_neighbour.uv)
     merged = merge_mirror_pass([a], [a_again, b], max_hands=2)
-    assert merged[0] is b and merged[1] is a  # the direct look's hand kept as found, the missed one added, by score
-    assert merge_mirror_pass([a], [a_again, b], max_hands=1) == [b]
-    assert merge_mirror_pass([], [b], max_hands=2) == [b] and merge_mirror_pass([a], [], max_hands=2) == [a]
+    assert merged[0] is a and merged[1] is b  # the direct look's hand kept as found, the missed one added
+    assert merge_mirror_pass([a], [a_again, b], max_hands=1) == [a]  # a mirror-only hand never displaces a direct one
+    assert merge_mirror_pass([a], [a_neighbour], max_hands=2) == [a, a_neighbour]
+    assert merge_mirror_pass([], [a, b], max_hands=1) == [b] and merge_mirror_pass([a], [], max_hands=2) == [a]
+    with_nan = dataclasses.replace(a_again, uv=np.where(np.arange(21)[:, None] < 5, np.nan, a_again.uv))
+    assert same_hand(a.uv, with_nan.uv) and not same_hand(a.uv, np.full((21, 2), np.nan))
 
 
 @pytest.mark.parametrize("rig_name", ["esther", "mixed"])
@@ -435,8 +447,80 @@ def test_mediapipe_on_a_real_photo_matches_the_reference(oracle):
     # Both hands of hands.jpg are left hands (backs towards the camera, thumbs on the right
     # when the fingers point up): geometry says so, and says "right" on the mirrored image.
     assert all(h.chirality < 0 for h in hands) and len(mirrored) == 2 and all(h.chirality > 0 for h in mirrored)
-    # Both hands found in one look: the mirror pass adds nothing and changes nothing.
+    # Both hands found in one look: the mirror pass adds nothing and changes nothing; and the
+    # hands found in the mirrored photo are the photo's hands, mirrored.
     assert len(one_look) == 2 and all(any(np.array_equal(h.uv, o.uv) for o in one_look) for h in hands)
+    assert all(any(same_hand(unmirror(m, image.shape[1]).uv, h.uv) for h in hands) for m in mirrored)
+
+
+class FakeLandmarker:
+    """Stands in for MediaPipe's HandLandmarker: records what it is given, and finds one
+    right hand with its wrist on the image's one white pixel (none when `blind`)."""
+
+    def __init__(self, world: np.ndarray, offsets: np.ndarray, blind: bool):
+        self.world, self.offsets, self.blind = world, offsets, blind
+        self.calls, self.closed = [], False
+
+    def detect_for_video(self, frame, ms):
+        image = frame.numpy_view().copy()
+        self.calls.append((image, ms))
+        if self.blind:
+            return SimpleNamespace(hand_landmarks=[], hand_world_landmarks=[], handedness=[])
+        height, width = image.shape[:2]
+        v, u = np.argwhere(image[..., 0] == 255)[0]
+        uv = np.array([u, v]) + self.offsets
+        return SimpleNamespace(
+            hand_landmarks=[[SimpleNamespace(x=(a + 0.5) / width, y=(b + 0.5) / height, z=0.0) for a, b in uv]],
+            hand_world_landmarks=[[SimpleNamespace(x=x, y=y, z=z) for x, y, z in self.world]],
+            handedness=[[SimpleNamespace(score=0.9, category_name="Right")]],
+        )
+
+    def close(self):
+        self.closed = True
+
+
+@needs_mediapipe
+def test_mediapipe_mirror_pass_runs_a_second_landmarker_on_the_mirror(monkeypatch, two_hands):
+    from mediapipe.tasks.python import vision
+
+    from esther_jax.detect import MediaPipeHands
+
+    world = two_hands["right"][0]
+    offsets = np.random.default_rng(1).uniform(-6.0, 6.0, (21, 2))
+    offsets[0] = 0.0
+    made = []
+
+    def create(options, fail_second=False):
+        if fail_second and made:
+            raise RuntimeError("no second landmarker")
+        made.append(FakeLandmarker(world, offsets, blind=not made))  # the direct look misses the hand
+        return made[-1]
+
+    monkeypatch.setattr(vision.HandLandmarker, "create_from_options", create)
+    image = np.zeros((48, 80, 3), np.uint8)  # not square: W and H are not interchangeable
+    image[30, 17] = 255
+    with MediaPipeHands(video=True) as detector:
+        assert detector.name == "mediapipe" and len(made) == 2
+        hands = detector.detect(image, 0.5)
+    direct, mirror = made
+    assert [ms for _, ms in direct.calls] == [ms for _, ms in mirror.calls] == [500]
+    np.testing.assert_array_equal(direct.calls[0][0], image)
+    np.testing.assert_array_equal(mirror.calls[0][0], image[:, ::-1])
+    assert len(hands) == 1
+    np.testing.assert_allclose(hands[0].uv[0], [17, 30], atol=1e-9)  # back on the marker
+    np.testing.assert_allclose(hands[0].uv - hands[0].uv[0], offsets * [-1, 1], atol=1e-9)
+    assert chirality(world) > 0 and hands[0].chirality == pytest.approx(-chirality(world)) and hands[0].label == -1
+    assert direct.closed and mirror.closed
+
+    made.clear()
+    monkeypatch.setattr(vision.HandLandmarker, "create_from_options", lambda options: create(options, fail_second=True))
+    with pytest.raises(RuntimeError, match="no second landmarker"):
+        MediaPipeHands(video=True)
+    assert len(made) == 1 and made[0].closed  # the first one is not left open
+
+    made.clear()
+    with MediaPipeHands(video=True, mirror_pass=False) as detector:
+        assert detector.name == "mediapipe:direct" and len(made) == 1 and detector.detect(image, 0.0) == []
 
 
 @needs_mediapipe

@@ -147,7 +147,7 @@ def make_detector(name: str) -> KeypointDetector:
 
         model, _, boxes = name[len("vitpose:") :].partition("@")
         if boxes.startswith("vitpose:"):
-            raise ValueError(f"{name!r}: the box source of a top-down model must find hands itself (mediapipe or onnx:PATH)")
+            raise ValueError(f"{name!r}: the box source of a top-down model must find hands itself (mediapipe, mediapipe:direct or onnx:PATH)")
         box_source = make_detector(boxes or "mediapipe")
         try:
             return OnnxTopDownPose(model, box_source)

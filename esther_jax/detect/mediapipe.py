@@ -50,12 +50,16 @@ What MediaPipe returns, and what we derive from it:
 import importlib.metadata
 import importlib.util
 import pathlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..mano.constants import KEYPOINT_PARENTS
 from .base import NUM_KEYPOINTS, HandDetection, as_rgb, keypoint_box, merge_mirror_pass, unmirror
 from .handedness import chirality
+
+if TYPE_CHECKING:
+    from mediapipe.tasks.python import vision
 
 OCCLUDED_WEIGHT = 0.5
 OCCLUSION_RADIUS = 0.04
@@ -130,8 +134,6 @@ class MediaPipeHands:
     the hands found only there (module docstring, "Two looks"); it doubles the time.
     """
 
-    name = "mediapipe"
-
     def __init__(
         self,
         model_path: str | pathlib.Path | None = None,
@@ -165,7 +167,15 @@ class MediaPipeHands:
             min_hand_presence_confidence=min_presence_confidence,
             min_tracking_confidence=min_tracking_confidence,
         )
-        self._landmarkers = [vision.HandLandmarker.create_from_options(options) for _ in range(2 if mirror_pass else 1)]
+        self.name = "mediapipe" if mirror_pass else "mediapipe:direct"
+        self._landmarker = vision.HandLandmarker.create_from_options(options)
+        self._mirror_landmarker = None
+        if mirror_pass:
+            try:
+                self._mirror_landmarker = vision.HandLandmarker.create_from_options(options)
+            except BaseException:
+                self._landmarker.close()
+                raise
 
     def detect(self, image: np.ndarray, timestamp_s: float = 0.0) -> list[HandDetection]:
         rgb = as_rgb(image)
@@ -177,14 +187,15 @@ class MediaPipeHands:
                     f"{self._last_ms / 1000} s (use one MediaPipeHands per view, video=False for unrelated images)"
                 )
             self._last_ms = ms
-        hands = self._landmark(self._landmarkers[0], rgb, ms)
-        if len(self._landmarkers) == 1:
+        hands = self._landmark(self._landmarker, rgb, ms)
+        if self._mirror_landmarker is None:
             return hands
-        mirrored = self._landmark(self._landmarkers[1], np.ascontiguousarray(rgb[:, ::-1]), ms)
+        mirrored = self._landmark(self._mirror_landmarker, np.ascontiguousarray(rgb[:, ::-1]), ms)
         return merge_mirror_pass(hands, [unmirror(h, rgb.shape[1]) for h in mirrored], self._num_hands)
 
-    def _landmark(self, landmarker, rgb: np.ndarray, ms: int) -> list[HandDetection]:
-        """One landmarker's hands in one contiguous RGB image."""
+    def _landmark(self, landmarker: "vision.HandLandmarker", rgb: np.ndarray, ms: int) -> list[HandDetection]:
+        """One landmarker's hands in one contiguous RGB image (`ms`: the frame's time in
+        milliseconds, used in video mode)."""
         height, width = rgb.shape[:2]
         frame = self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=rgb)
         result = landmarker.detect_for_video(frame, ms) if self._video else landmarker.detect(frame)
@@ -208,8 +219,9 @@ class MediaPipeHands:
         return hands
 
     def close(self) -> None:
-        for landmarker in self._landmarkers:
-            landmarker.close()
+        self._landmarker.close()
+        if self._mirror_landmarker is not None:
+            self._mirror_landmarker.close()
 
     def __enter__(self) -> "MediaPipeHands":
         return self
