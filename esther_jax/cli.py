@@ -69,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     detect.add_argument("--rectify", default="offbb120", choices=["offbb120", "offbb90", "offbb150"],
                         help="fisheye views are undistorted to this wide pinhole for detection (appendix M), keypoints mapped back")  # fmt: skip
     detect.add_argument("--videos", default="link", choices=["link", "copy", "encode"], help="how the clip's video/*.mp4 are made (image folders: encoded)")
-    importer = commands.add_parser("import-hot3d", help="HOT3D sequences or HOT3D-Clips tars -> clip folders (calibration, head motion, boxes, MANO ground truth)")
+    importer = commands.add_parser(
+        "import-hot3d", help="HOT3D sequences or HOT3D-Clips tars -> clip folders (calibration, head motion, boxes, MANO ground truth)"
+    )
     importer.add_argument("sources", nargs="+", help="per-sequence export folders (metadata.json, mano_hand_pose_trajectory.jsonl, ...) or clip tars")
     importer.add_argument("--out", required=True, help="output folder (one clip folder per source)")
     importer.add_argument("--mano", metavar="DIR", help="your MANO_RIGHT.pkl and MANO_LEFT.pkl: needed for gt.npz (HOT3D's ground truth is MANO)")
