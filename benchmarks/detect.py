@@ -5,7 +5,9 @@ with the simulated detector.
 
 1. Real-photo control (optional: skipped unless the MediaPipe reference photos with their
    published expected keypoints, tensorflow/tfjs-models' hand-pose-detection test data, sit
-   in ORACLE): hands found in `hands.jpg` and the worst keypoint error against the reference.
+   in ORACLE): hands found in `hands.jpg` and the worst keypoint error against the reference;
+   and degraded crops of the real hands (`real_hands_mirrored`), found as they are, mirrored,
+   and with two looks: is MediaPipe mirror-symmetric on real hands?
 2. Hand-centred crops: for every on-screen, in-view hand of `--crop-clips` one-frame rendered
    synthetic clips (`esther synth --render`; one frame each, because the frames of one clip
    are nearly the same image: 12 clips of 4 frames are about 20 distinct hands, and there an
@@ -32,7 +34,7 @@ with the simulated detector.
    found under their own side, only under the other (handedness swapped), or not found.
 
 Everything runs on the CPU, one process; the synthetic clips are made in `--out`
-(default: a temporary folder). About 5 minutes on a 2-core machine.
+(default: a temporary folder). About 7 minutes on a 2-core machine (4 of them making the clips).
 """
 
 import argparse
@@ -72,6 +74,58 @@ def real_photo_control() -> dict | None:
         hands = detector.detect(cv2.imread(str(ORACLE / "hands.jpg"))[..., ::-1])
     worst = max(min(np.abs(h.uv + 0.5 - e).max() for h in hands) for e in expected) if hands else float("nan")
     return {"hands_found": len(hands), "hands_expected": len(expected), "worst_keypoint_error_px": float(worst)}
+
+
+def _degraded_crop(image: np.ndarray, keypoints: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A hard CROP px crop of a real hand (`keypoints` (21, 2) px, pixel centres): rotated by
+    any angle, the hand's box 1/1.6 to 1/3 of the crop, contrast 25-100 %, exposure 50-120 %,
+    Gaussian blur sigma 0.5-3 px, noise sigma 0-12, up to two flat rectangles over it; and
+    its keypoints in the crop."""
+    import cv2
+
+    centre, size = keypoints.mean(axis=0), np.ptp(keypoints, axis=0).max()
+    M = cv2.getRotationMatrix2D((float(centre[0]), float(centre[1])), rng.uniform(-180, 180), CROP / (rng.uniform(1.6, 3.0) * size))
+    M[:, 2] += CROP / 2 - centre
+    crop = cv2.warpAffine(image, M, (CROP, CROP), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT).astype(np.float32)
+    crop = (crop - crop.mean()) * rng.uniform(0.25, 1.0) + crop.mean() * rng.uniform(0.5, 1.2)
+    crop = cv2.GaussianBlur(crop, (0, 0), rng.uniform(0.5, 3.0)) + rng.normal(0.0, rng.uniform(0.0, 12.0), crop.shape)
+    for _ in range(rng.integers(0, 3)):
+        (x, y), (w, h) = rng.integers(0, CROP, 2), rng.integers(20, 80, 2)
+        crop[y : y + h, x : x + w] = rng.uniform(0, 255, 3)
+    return np.clip(crop, 0, 255).astype(np.uint8), keypoints @ M[:, :2].T + M[:, 2]
+
+
+def real_hands_mirrored(repeats: int = 80) -> dict | None:
+    """Is MediaPipe mirror-symmetric on real hands? `repeats` degraded crops (`_degraded_crop`,
+    seeded) of each real hand of the oracle (the two left hands of `hands.jpg` at their
+    published keypoints; the right hand of the ASL video, every 25th frame, at the reference
+    output), each run with one look, its mirror with one look, and two looks
+    (`MediaPipeHands`). Found: `found_hand`."""
+    if not ORACLE.is_dir():
+        return None
+    import cv2
+
+    oracle = json.loads((ORACLE / "mediapipe_tasks_outputs.json").read_text())
+    photo = cv2.imread(str(ORACLE / "hands.jpg"))[..., ::-1]
+    hands = [("left (hands.jpg)", photo, k - 0.5) for k in np.asarray(oracle["tfjs_expected_hands_jpg"]["keypoints_px"], np.float64)]
+    reference = np.asarray(json.loads((ORACLE / "asl_hand.full.json").read_text()), np.float64)[..., :2]
+    for t, frame in enumerate(clips.iter_video(ORACLE / "asl_hand.25fps.mp4")):
+        if t % 25 == 0:
+            hands.append(("right (ASL video)", frame, reference[t] - 0.5))
+    rng = np.random.default_rng(0)
+    found: dict[str, list] = {}
+    with MediaPipeHands(video=False, mirror_pass=False) as one_look, MediaPipeHands(video=False) as two_looks:
+        for _ in range(repeats):
+            for name, image, keypoints in hands:
+                crop, truth = _degraded_crop(image, keypoints, rng)
+                mirrored_truth = truth * np.array([-1.0, 1.0]) + np.array([CROP - 1.0, 0.0])
+                found.setdefault(name, []).append((
+                    any(found_hand(h.uv, truth) for h in one_look.detect(crop)),
+                    any(found_hand(h.uv, mirrored_truth) for h in one_look.detect(np.ascontiguousarray(crop[:, ::-1]))),
+                    any(found_hand(h.uv, truth) for h in two_looks.detect(crop)),
+                ))  # fmt: skip
+    return {name: {"crops": len(v), "as_is": float(np.mean([r[0] for r in v])), "mirrored": float(np.mean([r[1] for r in v])),
+                   "two_looks": float(np.mean([r[2] for r in v]))} for name, v in found.items()}  # fmt: skip
 
 
 def found_hand(uv: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -263,6 +317,9 @@ def main() -> None:
     if control:
         print(f"real photo (hands.jpg): {control['hands_found']}/{control['hands_expected']} hands, worst keypoint error "
               f"{control['worst_keypoint_error_px']:.1f} px (reference tolerance 20 px)")  # fmt: skip
+    for name, row in (real_hands_mirrored() or {}).items():
+        print(f"degraded crops of a real {name} hand: found {row['as_is']:.0%} as they are, {row['mirrored']:.0%} mirrored, "
+              f"{row['two_looks']:.0%} with two looks ({row['crops']} crops)")  # fmt: skip
     px = lambda v: f"{v:.1f} px" if v is not None else "n/a"  # noqa: E731
     for padding in CROP_PADDINGS:
         for mirror_pass, looks in ((False, "the image"), (True, "the image and its mirror")):

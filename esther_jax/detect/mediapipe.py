@@ -32,14 +32,17 @@ What MediaPipe returns, and what we derive from it:
   left hand in the Tasks API 1.x; it flipped between versions and on mirrored input),
   kept as weak evidence; `chirality` is the geometric evidence of its 3D world landmarks
   (`handedness.chirality`), which follows the image content, mirrored or not.
-- Two looks (`mirror_pass`, on by default): MediaPipe is not mirror-symmetric. On the
-  hand crops of `benchmarks/detect.py` it finds 81 % of our right-hand renders and 66 % of
-  the left-hand ones, and the same crops mirrored 71 % and 80 %: the same pixels, found
-  more often when they look like a right hand. So each image is also run, by a second
-  landmarker with its own tracking state, mirrored; its hands come back unmirrored
-  (`base.unmirror`) and fill the hands the direct look missed (`base.merge_mirror_pass`);
-  where both looks find a hand, the direct look's keypoints are kept. 82 % of the crops
-  instead of 74 % (padding 2.0); twice the time.
+- Two looks (`mirror_pass`, on by default): MediaPipe is not mirror-symmetric, so an
+  image and its mirror are missed differently. On the rendered hand crops of
+  `benchmarks/detect.py` it finds 81 % of our right hands and 66 % of the left ones, and
+  the same crops mirrored 71 % and 80 %; on hard crops of the real hands of the detector
+  tests the difference is a few points (a photo's two left hands: 52 %, mirrored 53 %; a
+  video's right hand: 78 %, 81 %; `benchmarks/detect.py`, `real_hands_mirrored`). So each image
+  is also run, by a second landmarker with its own tracking state, mirrored; its hands come
+  back unmirrored (`base.unmirror`) and fill the hands the direct look missed
+  (`base.merge_mirror_pass`); where both looks find a hand, the direct look's keypoints are
+  kept. Found: 82 % of the rendered crops instead of 74 % (padding 2.0), 54 % and 83 % of
+  the real ones instead of 52 % and 78 %; twice the time.
 - The wrist is MediaPipe's own: on renders of the built-in hand (`benchmarks/detect.py`)
   it sits distal of the MANO-style wrist joint, by 0.15 of the wrist-to-middle-knuckle
   length (median, egocentric crops), about 12 px median error on 224 px crops with the hand
