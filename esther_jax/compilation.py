@@ -22,6 +22,14 @@ cheaper compilation per backend (`persistent_jit(compiler_options=CPU_QUICK_COMP
 Neither store is ever pruned (a changed library or jax version writes new files beside the
 old ones): delete the folder to reclaim its space.
 
+The store never fails a job: a program that cannot be serialised, read or deserialised (a
+missing package such as `flatbuffers`, a file of another jax release, a damaged file, a
+cache folder that cannot be written) is traced and compiled as it would be without the
+store, and a `ProgramStoreWarning` says so once per process and kind of failure. Under a
+JAX transformation (a `persistent_jit` function called inside `jax.jit`, `jax.vmap`,
+`jax.grad`, ...) the store is not used: the call traces through `jax.jit`, which composes
+with every transformation.
+
 JAX never stores a program that contains a host callback (`jax.pure_callback`,
 `eqx.error_if`, `jax.debug.print`), and `jax.export` cannot serialise one: the library's
 compiled hot paths contain none, and validate their inputs at the edge instead.
@@ -50,7 +58,20 @@ DEFAULT_DIR = pathlib.Path("~/.cache/esther_jax/xla")
 PROGRAMS = "programs"
 _MAGIC = b"esther-jax program 1\n"
 _store: list[pathlib.Path] = []  # the folder of stored programs once enabled (one entry)
-_LIBRARY = ("esther_jax", "fitting")  # the packages whose source `_SOURCE` digests
+_LIBRARY = ("esther_jax", "fitting")  # the packages whose source `_source_digest` covers
+_said: set[str] = set()  # the kinds of store failure this process has warned about
+
+
+class ProgramStoreWarning(UserWarning):
+    """The program store (or the XLA cache) could not be used for a program; the job goes on
+    without it (compiling in this process as if it were off)."""
+
+
+def _say_once(kind: str, message: str) -> None:
+    """Warn about one kind of store failure once per process."""
+    if kind not in _said:
+        _said.add(kind)
+        warnings.warn(message, ProgramStoreWarning, stacklevel=4)
 
 CPU_QUICK_COMPILE: dict[str, dict[str, Any]] = {"cpu": {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}}
 """`persistent_jit` options for programs that run once per job (setup, bookkeeping): on the
@@ -69,14 +90,24 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None, *, min_
     """Store compiled programs that took longer than `min_compile_time_s` to compile in
     `directory` (default `$ESTHER_JAX_CACHE` or `~/.cache/esther_jax/xla`), and the traced
     programs of `persistent_jit` functions in its `programs/` folder; load both from there
-    in later processes. Returns the directory; safe to call more than once.
+    in later processes. Returns the directory; safe to call more than once. A folder that
+    cannot be created or written leaves both caches off, with a `ProgramStoreWarning`.
 
     The default stores every program, however small: besides its few large solvers the
     teacher runs about thirty small programs (tens of milliseconds each), and a warm
     process loads them faster than it compiles them. The price is more, smaller files in
     the cache (a few hundred per rig and process)."""
     path = pathlib.Path(directory or os.environ.get("ESTHER_JAX_CACHE") or DEFAULT_DIR).expanduser()
-    (path / PROGRAMS).mkdir(parents=True, exist_ok=True)
+    try:
+        (path / PROGRAMS).mkdir(parents=True, exist_ok=True)
+        probe = path / PROGRAMS / f".write-probe-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        _store.clear()
+        _say_once("folder", f"the compilation cache folder {path} cannot be written ({type(err).__name__}: {err}); "
+                            "compiling every program in this process, without the cache (set ESTHER_JAX_CACHE to a writable folder)")  # fmt: skip
+        return path
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -89,7 +120,10 @@ def persistent_jit(
 ) -> Callable:
     """`jax.jit`, whose lowered program is also stored once `enable_compilation_cache` has
     been called (before that it is exactly `jax.jit(fun, static_argnames=...,
-    compiler_options=...)` with this backend's options).
+    compiler_options=...)` with this backend's options). Called inside another
+    transformation (`jax.jit`, `jax.vmap`, `jax.grad`, ...) it is `jax.jit(fun,
+    static_argnames=...)`, which composes with all of them (XLA options are the outermost
+    program's business there), and nothing is stored.
 
     `compiler_options` maps a backend's platform name (`"cpu"`, `"gpu"`, ...) to the XLA
     options its programs are compiled with (`jax.jit`'s `compiler_options`), read when a
@@ -116,13 +150,19 @@ def persistent_jit(
     def jitted():
         return jax.jit(fun, static_argnames=static_argnames, compiler_options=options_here())
 
+    @functools.cache
+    def nested():  # inside another transformation: XLA options belong to the outermost jit
+        return jax.jit(fun, static_argnames=static_argnames)
+
     signature = inspect.signature(fun)
     name = f"{fun.__module__}.{fun.__qualname__}"
-    code = _code_digest(fun)
+    code = functools.cache(lambda: _code_digest(fun))  # at the first stored call, not at import
     programs: dict = {}  # (treedef, static, avals) -> (compiled, output treedef)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
+            return nested()(*args, **kwargs)  # under jit, vmap, grad, ...: traced through, never stored
         if not _store:
             return jitted()(*args, **kwargs)
         bound = signature.bind(*args, **kwargs)
@@ -133,9 +173,9 @@ def persistent_jit(
         avals = tuple((x.shape, x.dtype) for x in leaves)
         key = (treedef, static, avals)
         if key not in programs:
-            programs[key] = _program(fun, signature, name, code, treedef, static, avals, options_here())
+            programs[key] = _program(fun, signature, name, code(), treedef, static, avals, options_here())
         compiled, out_treedef = programs[key]
-        if compiled is None:  # not exportable: jax.jit's program, warned about once
+        if compiled is None:  # not exportable, or the store failed: jax.jit's program (warned about once)
             return jitted()(*args, **kwargs)
         return jax.tree.unflatten(out_treedef, compiled(*leaves))
 
@@ -148,7 +188,7 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, 
     does not depend on the options: they are part of the XLA cache's key."""
     key = hashlib.sha256()
     config = (jax.default_backend(), jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision)
-    for part in (_SOURCE, code, config, name, str(treedef), repr(static), repr(avals)):
+    for part in (_source_digest(), code, config, name, str(treedef), repr(static), repr(avals)):
         key.update(repr(part).encode() + b"\0")
     path = _store[0] / f"{name}-{key.hexdigest()[:40]}.jaxexport"
     shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals]
@@ -177,7 +217,12 @@ def _program(fun: Callable, signature: inspect.Signature, name: str, code: str, 
         out_treedef = structure[0]
         _save(path, exported, jax.tree.unflatten(out_treedef, list(range(out_treedef.num_leaves))))
     run = functools.wraps(fun)(lambda *leaves: exported.call(*leaves))
-    return jax.jit(run).lower(*shapes).compile(compiler_options=options), out_treedef
+    try:
+        return jax.jit(run).lower(*shapes).compile(compiler_options=options), out_treedef
+    except Exception as err:  # noqa: BLE001 - e.g. a stored program this jax cannot run: jax.jit's own
+        _say_once("compile", f"the stored program {path.name} cannot be compiled ({type(err).__name__}: {str(err).splitlines()[0]}); "
+                             "compiling such programs with jax.jit in this process")  # fmt: skip
+        return None, None
 
 
 @functools.cache
@@ -204,9 +249,25 @@ def _save(path: pathlib.Path, exported, skeleton) -> None:
     numbered; plain pickle of this library's modules) and the serialised program."""
     from .files import atomic_output
 
-    structure = pickle.dumps(skeleton, protocol=pickle.HIGHEST_PROTOCOL)
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(_MAGIC + len(structure).to_bytes(8, "little") + structure + bytes(exported.serialize()))
+    try:
+        structure = pickle.dumps(skeleton, protocol=pickle.HIGHEST_PROTOCOL)
+        program = bytes(exported.serialize())  # needs the flatbuffers package
+    except Exception as err:  # noqa: BLE001 - an unstorable program is only traced again by the next process
+        _say_once(_failure_kind(err), f"programs cannot be stored ({type(err).__name__}: {err}); every process traces them "
+                                      "again (the XLA cache still keeps their compilation)")  # fmt: skip
+        return
+    try:
+        with atomic_output(path) as tmp:
+            tmp.write_bytes(_MAGIC + len(structure).to_bytes(8, "little") + structure + program)
+    except OSError as err:
+        _say_once("write", f"cannot write stored programs to {path.parent} ({type(err).__name__}: {err}); "
+                           "every process traces them again")  # fmt: skip
+
+
+def _failure_kind(err: Exception) -> str:
+    """The kind of a store failure `_say_once` reports once: a missing package (both when
+    storing and loading), or anything else about one file."""
+    return "package" if isinstance(err, ImportError) else "damaged"
 
 
 def _load(path: pathlib.Path, packages: tuple[str, ...]):
@@ -215,7 +276,10 @@ def _load(path: pathlib.Path, packages: tuple[str, ...]):
     may name classes of `packages` only."""
     try:
         data = path.read_bytes()
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # none stored (yet)
+        return None
+    except OSError as err:
+        _say_once("read", f"cannot read stored programs such as {path} ({type(err).__name__}: {err}); tracing them again")
         return None
     try:
         if not data.startswith(_MAGIC):
@@ -224,8 +288,10 @@ def _load(path: pathlib.Path, packages: tuple[str, ...]):
         end = start + int.from_bytes(data[len(_MAGIC):start], "little")
         skeleton = _Unpickler(io.BytesIO(data[start:end]), packages).load()
         return jax.export.deserialize(bytearray(data[end:])), jax.tree.structure(skeleton)
-    except Exception as err:  # noqa: BLE001 - any unreadable file is traced again
-        warnings.warn(f"ignoring the unreadable stored program {path} ({type(err).__name__}: {err}); tracing it again", stacklevel=4)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is traced again (and replaced)
+        kind = _failure_kind(err)
+        what = "stored programs cannot be read" if kind == "package" else f"ignoring the unreadable stored program {path}"
+        _say_once(kind, f"{what} ({type(err).__name__}: {err}); tracing again (later such files are not reported)")
         return None
 
 
@@ -245,11 +311,12 @@ class _Unpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"a stored program's output structure names {module}.{name}, which it may not")
 
 
+@functools.cache
 def _source_digest() -> str:
-    """What a stored program depends on besides its arguments: this library's source (as
-    this process found it when it imported the library, so that files edited while it runs
-    cannot key programs traced from the old code) and the versions of the libraries it
-    traces through."""
+    """What a stored program depends on besides its arguments: this library's source (read
+    once, at the first stored call: files edited later in the process's life cannot key
+    programs traced from the code it runs) and the versions of the libraries it traces
+    through."""
     h = hashlib.sha256()
     for package in _LIBRARY:
         root = pathlib.Path(importlib.util.find_spec(package).origin).parent  # found, not imported
@@ -260,13 +327,11 @@ def _source_digest() -> str:
     return h.hexdigest()
 
 
-_SOURCE = _source_digest()
-
 
 def _code_digest(fun: Callable) -> str:
     """The decorated function's own part of its programs' key: its code object (two
     functions of one name, lambdas say, are two programs) and, for a function defined
-    outside this library (whose source `_SOURCE` covers), its module's source file as it
+    outside this library (whose source `_source_digest` covers), its module's source file as it
     was when the function was decorated. Values the function reads from closures or
     globals, and code in other modules it calls, are not part of the key."""
     h = hashlib.sha256()

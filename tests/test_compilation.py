@@ -1,6 +1,11 @@
 """`persistent_jit`: a stored program computes what `jax.jit` computes, a later process
 (here: a second decorated copy, with an empty in-memory cache) loads it instead of tracing
-it, and the store's edge cases (unreadable file, unexportable function, store off) behave."""
+it, the store's edge cases (unreadable file, unexportable function, store off) behave, none
+of its failures (missing package, another jax's program, damaged file, unwritable folder)
+fails a call, and it composes with jax.jit, jax.vmap and jax.grad."""
+
+import os
+import warnings
 
 import equinox as eqx
 import jax
@@ -38,6 +43,7 @@ def traced(trace_log: list):
 def store(tmp_path, monkeypatch):
     """A fresh, empty program store for one test (the session's store restored after)."""
     monkeypatch.setattr(compilation, "_store", [tmp_path / compilation.PROGRAMS])
+    monkeypatch.setattr(compilation, "_said", set())  # each test sees its own first warnings
     (tmp_path / compilation.PROGRAMS).mkdir()
     return tmp_path / compilation.PROGRAMS
 
@@ -81,7 +87,7 @@ def test_an_unreadable_stored_program_is_traced_again(store):
     (path,) = store.glob("*.jaxexport")
     path.write_bytes(path.read_bytes()[:100])  # truncated
     log = []
-    with pytest.warns(UserWarning, match="unreadable stored program"):
+    with pytest.warns(compilation.ProgramStoreWarning, match="unreadable stored program"):
         out = traced(log)(rig, x, 0.25, power=2)
     assert log == [2] and np.all(np.isfinite(np.asarray(out[0].value)))
     log = []
@@ -134,3 +140,115 @@ def test_two_functions_of_one_name_are_two_programs(store):
     np.testing.assert_array_equal(np.asarray(plus(x)), np.arange(3.0) + 1.0)
     np.testing.assert_array_equal(np.asarray(times(x)), np.arange(3.0) * 3.0)
     assert len(list(store.glob("*.jaxexport"))) == 2
+
+
+def _expected(rig, x, offset=0.25, power=2):
+    return jax.jit(affine, static_argnames=("power",))(rig, x, offset, power=power)
+
+
+def _assert_equal_trees(got, want):
+    assert jax.tree.structure(got) == jax.tree.structure(want)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def _store_warnings(record) -> list[str]:
+    return [str(w.message) for w in record if issubclass(w.category, compilation.ProgramStoreWarning)]
+
+
+def test_without_the_serialisation_package_calls_run_and_it_is_said_once(store, monkeypatch):
+    """jax.export's serialisation needs flatbuffers (not a dependency of jax): without it the
+    program is traced as without the store, and one warning says so for every program."""
+
+    def missing(*args, **kwargs):
+        raise ImportError("Please install 'flatbuffers' in order to use Exported serialization")
+
+    monkeypatch.setattr(jax.export.Exported, "serialize", missing)
+    monkeypatch.setattr(jax.export, "deserialize", missing)
+    rig, x = _inputs()
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        _assert_equal_trees(traced([])(rig, x, 0.25, power=2), _expected(rig, x))
+        _assert_equal_trees(traced([])(rig, x, 0.25, power=3), _expected(rig, x, power=3))  # a second program
+    (message,) = _store_warnings(record)
+    assert "flatbuffers" in message and "cannot be stored" in message
+    assert not list(store.glob("*.jaxexport"))
+
+
+@pytest.mark.parametrize("failure", ["another jax", "damaged", "garbage"])
+def test_a_stored_program_that_cannot_be_loaded_is_traced_again(store, monkeypatch, failure):
+    rig, x = _inputs()
+    traced([])(rig, x, 0.25, power=2)
+    (path,) = store.glob("*.jaxexport")
+    if failure == "another jax":  # a program this jax's deserialiser refuses (as another release's would be)
+        def refuse(*args, **kwargs):
+            raise ValueError("Exported serialization version 99 is not supported")
+
+        monkeypatch.setattr(jax.export, "deserialize", refuse)
+    elif failure == "damaged":  # the header and structure intact, the program's bytes not
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2] + bytes(len(data) - len(data) // 2))
+    else:
+        path.write_bytes(os.urandom(4096))
+    log = []
+    with pytest.warns(compilation.ProgramStoreWarning, match="tracing again"):
+        out = traced(log)(rig, x, 0.25, power=2)
+    assert log == [2]
+    _assert_equal_trees(out, _expected(rig, x))
+
+
+def test_an_unwritable_program_folder_never_fails_a_call(tmp_path, monkeypatch):
+    """The store's folder cannot be written (here: a file stands where its parent should be,
+    which fails for root too): calls compute as without the store, said once."""
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    monkeypatch.setattr(compilation, "_store", [blocker / compilation.PROGRAMS])
+    monkeypatch.setattr(compilation, "_said", set())
+    rig, x = _inputs()
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        _assert_equal_trees(traced([])(rig, x, 0.25, power=2), _expected(rig, x))
+        _assert_equal_trees(traced([])(rig, x, 0.25, power=3), _expected(rig, x, power=3))
+    (message,) = _store_warnings(record)
+    assert "cannot write stored programs" in message
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_read_only_cache_folder_leaves_the_caches_off(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    (folder / compilation.PROGRAMS).mkdir(parents=True)
+    for path in (folder / compilation.PROGRAMS, folder):
+        path.chmod(0o555)
+    _enable_fails_softly(folder, monkeypatch)
+
+
+def test_a_cache_folder_that_cannot_be_made_leaves_the_caches_off(tmp_path, monkeypatch):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    _enable_fails_softly(blocker / "cache", monkeypatch)
+
+
+def _enable_fails_softly(folder, monkeypatch):
+    monkeypatch.setattr(compilation, "_store", [])
+    monkeypatch.setattr(compilation, "_said", set())
+    before = jax.config.jax_compilation_cache_dir
+    with pytest.warns(compilation.ProgramStoreWarning, match="cannot be written"):
+        compilation.enable_compilation_cache(folder)
+    assert compilation._store == [] and jax.config.jax_compilation_cache_dir == before
+    rig, x = _inputs()
+    _assert_equal_trees(traced([])(rig, x, 0.25, power=2), _expected(rig, x))
+
+
+def test_persistent_jit_composes_with_transformations(store):
+    """Inside jax.jit, jax.vmap and jax.grad a persistent_jit function traces through jax.jit
+    (a compiled program cannot take tracers); the store is used at the top level only."""
+    f = compilation.persistent_jit(lambda v, w: jnp.sin(v) * w, static_argnames=())
+    plain = lambda v, w: jnp.sin(v) * w  # noqa: E731
+    v, w = jnp.linspace(0.0, 1.0, 4), jnp.asarray(2.0)
+    np.testing.assert_allclose(np.asarray(jax.jit(f)(v, w)), np.asarray(plain(v, w)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.vmap(f, in_axes=(0, None))(v, w)), np.asarray(plain(v, w)), rtol=1e-6)
+    grad = jax.grad(lambda v: jnp.sum(f(v, w)))(v)
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(2.0 * jnp.cos(v)), rtol=1e-6)
+    assert not list(store.glob("*.jaxexport"))  # nothing traced under a transformation is stored
+    f(v, w)
+    assert len(list(store.glob("*.jaxexport"))) == 1
