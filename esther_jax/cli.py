@@ -215,7 +215,12 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
         print((pathlib.Path(args.out) / "table.md").read_text())
-        print(f"{result['num_hands']} hands, coverage {result['coverage']:.1%}; wrote {pathlib.Path(args.out).resolve()}")
+        missing = result["missing_predictions"]
+        print(
+            f"{result['num_hands']} hands scored, {len(missing)} ground-truth hands with no prediction"
+            + (f" ({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})" if missing else "")
+            + f"; coverage {result['coverage']:.1%} of the on-screen ground-truth hand-frames; wrote {pathlib.Path(args.out).resolve()}"
+        )
     return 0
 
 
@@ -241,7 +246,8 @@ def _label(args) -> int:
         print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
     rate = result["hand_frames"] / max(result["seconds"], 1e-9)
     print(
-        f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames, {rate:.0f} hand-frames/s), "
+        f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames in {result['seconds']:.1f} s, "
+        f"{rate:.3g} hand-frames/s), "
         f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
     )
     _write_label_summary(pathlib.Path(args.out), result)

@@ -192,7 +192,12 @@ def _run_detector(
     start = sum(p.num_frames for p in parts)
     chunk = Candidates.empty(checkpoint_every, max_hands)
     filled = 0
-    detectors = [factory(), factory()]
+    detectors = [factory()]  # one per view (video mode tracks each view's hands)
+    try:
+        detectors.append(factory())
+    except BaseException:
+        detectors[0].close()
+        raise
     bar = tqdm(total=sources[0].estimated_length(), initial=start, desc=f"detect {name}", unit="frame", disable=not progress)
     try:
         for frame_index, frames in enumerate(zip(*sources, strict=True)):

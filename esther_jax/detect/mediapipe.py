@@ -50,9 +50,12 @@ What MediaPipe returns, and what we derive from it:
   own renders), so the teacher fits it as given.
 """
 
+import atexit
 import importlib.metadata
 import importlib.util
 import pathlib
+import threading
+import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -128,6 +131,22 @@ def keypoint_confidence(uvz: np.ndarray, width: int, height: int, hand_score: fl
     return hand_score * inside * np.where(occluded, OCCLUDED_WEIGHT, 1.0)
 
 
+def _close_landmarkers(landmarkers: list) -> None:
+    for landmarker in landmarkers:
+        landmarker.close()
+
+
+def _before_thread_pools_shut_down(finalizer: weakref.finalize) -> None:
+    """Run `finalizer` (if still alive) when the interpreter exits, before
+    `concurrent.futures` shuts its thread pools down: `threading._register_atexit`, the hook
+    `concurrent.futures` registers its own shutdown with (CPython >= 3.9, LIFO), else atexit."""
+    register = getattr(threading, "_register_atexit", atexit.register)
+    try:
+        register(finalizer)
+    except RuntimeError:  # the interpreter is already shutting down: nothing left to run it
+        pass
+
+
 class MediaPipeHands:
     """MediaPipe HandLandmarker. `video=True` (the default) runs the Tasks VIDEO mode, which
     tracks hands between frames and needs strictly increasing timestamps: use one instance
@@ -179,6 +198,14 @@ class MediaPipeHands:
             except BaseException:
                 self._landmarker.close()
                 raise
+        # Closed by `close()`, by garbage collection, or at interpreter exit: a landmarker left
+        # open until then prints a traceback from its `__del__` (mediapipe calls its C library
+        # through a thread pool, which Python shuts down before `atexit` handlers run), so the
+        # exit hook is the one the thread pools themselves use, which runs before their shutdown.
+        landmarkers = [m for m in (self._landmarker, self._mirror_landmarker) if m is not None]
+        self._finalizer = weakref.finalize(self, _close_landmarkers, landmarkers)
+        self._finalizer.atexit = False
+        _before_thread_pools_shut_down(self._finalizer)
 
     def detect(self, image: np.ndarray, timestamp_s: float = 0.0) -> list[HandDetection]:
         rgb = as_rgb(image)
@@ -222,9 +249,8 @@ class MediaPipeHands:
         return hands
 
     def close(self) -> None:
-        self._landmarker.close()
-        if self._mirror_landmarker is not None:
-            self._mirror_landmarker.close()
+        """Release both landmarkers (idempotent; also done at garbage collection and exit)."""
+        self._finalizer()
 
     def __enter__(self) -> "MediaPipeHands":
         return self

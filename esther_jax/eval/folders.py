@@ -188,6 +188,7 @@ def evaluate_folders(
         raise ValueError(f"parameters must be one of {PARAMETER_MODES}, got {parameters!r}")
     pred_root, out_dir = _predictions_folder(pred_root), check_out_dir(out_dir)
     per_clip, missing, compared, not_compared, unverified = [], [], [], [], []
+    missing_onscreen = 0  # on-screen ground-truth hand-frames of hands with no prediction
     all_errors, z_pred, z_gt = [], [], []
     for clip in clips.list_clips(gt_root):
         fps = float(clips.read_meta(clip)["fps"])
@@ -198,6 +199,7 @@ def evaluate_folders(
             pred_path = clips.hand_file(pred_root / clip.name, side, "labels")
             if not pred_path.is_file():
                 missing.append(f"{clip.name}/{side}")
+                missing_onscreen += int(clips.load_npz(gt_path, "gt")["onscreen"].sum())
                 continue
             hand = f"{clip.name}/{side}"
             if not _same_clip(pred_root / clip.name, clip):
@@ -246,6 +248,7 @@ def evaluate_folders(
     thresholds, curve = metrics.pck_curve(jnp.asarray(errors))
     summary["pck_auc_p"] = {"value": float(metrics.pck_auc(jnp.asarray(errors))), "unit": "fraction (0-50 mm, wrist-relative)"}
     scored, onscreen = (sum(c["coverage"][k] for c in per_clip) for k in (0, 1))
+    onscreen += missing_onscreen
 
     out_dir.mkdir(parents=True, exist_ok=True)
     figures = {
