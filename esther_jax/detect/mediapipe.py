@@ -173,6 +173,11 @@ class MediaPipeHands:
             from mediapipe.tasks import python as tasks
             from mediapipe.tasks.python import vision
         except ImportError as err:
+            if err.name is not None and err.name.split(".")[0] != "mediapipe":  # installed, but a module it needs is not
+                raise DetectorUnavailable(
+                    f"mediapipe is installed but cannot be imported: it needs the module {err.name!r} ({err}); the detect "
+                    "extra installs what it imports (`python -m pip install -e '.[detect]'`), else install the package that provides it"
+                ) from err
             raise DetectorUnavailable(f"mediapipe is not installed ({err}); {INSTALL_HINT}") from err
         path = pathlib.Path(model_path) if model_path is not None else bundled_model_path()
         if not path.is_file():

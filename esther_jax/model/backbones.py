@@ -183,7 +183,7 @@ def _read_state_dict(path: pathlib.Path) -> dict[str, np.ndarray]:
             state = state.get("model", state.get("teacher", state)) if isinstance(state, dict) else state
             return {k.removeprefix("backbone."): v.float().numpy() for k, v in state.items()}
     except ImportError as err:
-        raise ImportError(f"reading {path.name} needs {err.name!r} (pip install {err.name}); or convert it to .npz") from err
+        raise ImportError(f"reading {path.name} needs {err.name!r} (python -m pip install -e '.[dinov3]'); or convert it to .npz") from err
     except Exception as err:  # corrupt or foreign file
         raise ValueError(f"could not read backbone weights {path}: {err}") from err
     raise ValueError(f"unsupported weight file {path.name!r}: use .pth, .npz or .safetensors")
