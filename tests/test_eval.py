@@ -106,7 +106,7 @@ def _write_clip(root, name, rng, T=24, fps=30.0, noise=0.0, drift=0.0):
     return pred
 
 
-def test_evaluate_folders_end_to_end(tmp_path):
+def test_evaluate_folders_end_to_end(tmp_path, capsys):
     rng = np.random.default_rng(1)
     gt_root, pred_root = tmp_path / "gt", tmp_path / "pred"
     for i in range(6):
@@ -119,7 +119,9 @@ def test_evaluate_folders_end_to_end(tmp_path):
     assert result["metrics"]["wrist"]["value"] == pytest.approx(np.sqrt(3) * 10, abs=1.5)  # mm
     assert result["metrics"]["pa_mpjpe"]["value"] < result["metrics"]["mpjpe"]["value"]
     assert result["metrics"]["wrist"]["ci_low"] <= result["metrics"]["wrist"]["value"] <= result["metrics"]["wrist"]["ci_high"]
-    assert result["coverage"] == 1.0 and result["depth_scatter"]["count"] == 6 * 23
+    # coverage counts every ground-truth hand: the unlabelled clip's 23 on-screen frames too
+    assert result["coverage"] == pytest.approx(6 / 7) and result["depth_scatter"]["count"] == 6 * 23
+    assert "6 hands scored, 1 ground-truth hands with no prediction (unlabelled/right); coverage 85.7%" in capsys.readouterr().out
     for name in ("table.md", "table.csv", "depth_scatter.png", "pck.png"):
         assert (tmp_path / "out" / name).stat().st_size > 100
     assert "P-MPJPE" in (tmp_path / "out" / "table.md").read_text()
