@@ -12,9 +12,12 @@ import numpy as np
 
 def machine() -> str:
     """The machine the numbers were taken on: JAX's version and backend, the CPU cores,
-    and numpy's single-precision matrix product (2048 x 2048, best of 5, GFLOP/s).
-    Machines of one class differ from day to day (on 2-core CI-class machines we read 71
-    to 249 GFLOP/s), so a timing is only comparable with another of a similar reading."""
+    numpy's single-precision matrix product (2048 x 2048, best of 5, GFLOP/s) and the
+    1-minute load average. Machines of one class differ from day to day (on 2-core
+    CI-class machines we read 71 to 450 GFLOP/s), so a timing is only comparable with
+    another of a similar reading; a load near 1 or more on 2 cores means another job
+    shares them (peers with OpenMP thread teams, torch, slow down far more than XLA, so
+    ratios against them inflate: benchmarks/fk.py)."""
     a = np.random.default_rng(0).random((2048, 2048), dtype=np.float32)
     a @ a
     best = float("inf")
@@ -22,7 +25,14 @@ def machine() -> str:
         t0 = time.perf_counter()
         a @ a
         best = min(best, time.perf_counter() - t0)
-    return f"jax {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} cores, numpy SGEMM {2 * 2048**3 / best / 1e9:.0f} GFLOP/s"
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count()
+    return (
+        f"jax {jax.__version__} on {jax.default_backend()}, {cores} cores, numpy SGEMM {2 * 2048**3 / best / 1e9:.0f} GFLOP/s, "
+        f"load {os.getloadavg()[0]:.2f}"
+    )
 
 
 def compile_seconds(fn: Callable, *args) -> float:

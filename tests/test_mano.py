@@ -1,3 +1,4 @@
+import functools
 import os
 import pickle
 import subprocess
@@ -563,3 +564,24 @@ def test_forward_batch_equals_vmap_for_any_batch_size(right):
     reference = jax.vmap(mano.forward, in_axes=(None, 0))(right, batch)
     chunked = eqx.filter_jit(mano.forward_batch)(right, batch, chunk=16)
     assert tree_allclose(chunked, reference, atol=1e-6)
+
+
+def test_forward_batch_kernel_checks_and_differentiates_as_vmap(right):
+    """Above 32 hands forward_batch runs its own batch kernel: NaN named eagerly and at run
+    time, bad shapes named, and its gradient is vmap(forward)'s."""
+    batch = stack([random_params(s) for s in range(40)])
+    bad = eqx.tree_at(lambda p: p.betas, batch, batch.betas.at[3, 0].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"NaN or infinite values \(in betas\)"):
+        mano.forward_batch(right, bad)
+    with pytest.raises(Exception, match="ManoParams contains NaN or infinite"):
+        jax.block_until_ready(eqx.filter_jit(mano.forward_batch)(right, bad))
+    with pytest.raises(ValueError, match="transl"):
+        mano.forward_batch(right, eqx.tree_at(lambda p: p.transl, batch, batch.transl[:5]))
+
+    def loss(forward, params):
+        out = forward(params)
+        return jnp.sum(out.vertices**2) + jnp.sum(out.joints**2)
+
+    kernel = jax.grad(functools.partial(loss, lambda p: mano.forward_batch(right, p)))(batch)
+    reference = jax.grad(functools.partial(loss, lambda p: jax.vmap(mano.forward, in_axes=(None, 0))(right, p)))(batch)
+    assert tree_allclose(kernel, reference, rtol=1e-4, atol=1e-4)
