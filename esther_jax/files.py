@@ -128,9 +128,10 @@ def file_sha256(path: str | pathlib.Path) -> str:
 @functools.cache
 def git_revision() -> str | None:
     """The commit of this checkout of esther_jax (None outside a git checkout), recorded
-    with runs and reports so a number can be traced to the code that made it. Read once,
-    when this module is imported: a process that runs for hours records the commit whose
-    code it imported, not the HEAD the checkout has moved to meanwhile."""
+    with runs and reports so a number can be traced to the code that made it. Read once per
+    process, at the first call (runs and studies call it when they start, not at import): a
+    process that runs for hours keeps the commit it started with, not the HEAD the checkout
+    has moved to meanwhile."""
     try:
         root = pathlib.Path(__file__).resolve().parents[1]
         out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
@@ -138,5 +139,3 @@ def git_revision() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
 
-
-git_revision()  # read at import (see its docstring)

@@ -505,12 +505,13 @@ def plot_error_vs_depth(results: list[dict], path: str | pathlib.Path, source: s
     """Per condition, every scored hand-frame's wrist error and P-MPJPE against its
     depth, with its own band of `source` (a vertical line from the in-plane error to the
     admissible depth error)."""
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # its own canvas: pyplot's backend and registry untouched
 
     prefix = BAND_SOURCES[source]
     cols = min(len(results), 3)
     rows = -(-len(results) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    fig = Figure(figsize=(4.2 * cols, 3.4 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for ax, r in zip(axes.flat, results):
         f = r["frames"]
         ok = f["scored"] & np.isfinite(f["wrist_mm"]) & np.isfinite(f[prefix + "in_plane_error_mm"])
@@ -528,5 +529,4 @@ def plot_error_vs_depth(results: list[dict], path: str | pathlib.Path, source: s
     path = pathlib.Path(path)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    plt.close(fig)
     return path

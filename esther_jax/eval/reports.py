@@ -5,14 +5,12 @@ import dataclasses
 import pathlib
 
 import matplotlib
+from matplotlib.figure import Figure
+import numpy as np
+from jaxtyping import Array, Bool, Float, Shaped
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from jaxtyping import Array, Bool, Float, Shaped  # noqa: E402
-
-from ..files import atomic_output  # noqa: E402
-from ..metrics import Bootstrap, DepthScatter  # noqa: E402
+from ..files import atomic_output
+from ..metrics import Bootstrap, DepthScatter
 
 METRIC_LABELS = {
     "p_mpjpe": ("P-MPJPE", "mm"),
@@ -80,10 +78,16 @@ def markdown_table(records: list[Record], columns: tuple[str, ...] = PAPER_COLUM
     return "\n".join(lines) + "\n"
 
 
-def _save(fig, path: pathlib.Path) -> pathlib.Path:
+def _subplots(*grid: int, **kwargs):
+    """A figure and its axes on its own canvas (`matplotlib.figure.Figure`, not pyplot): the
+    library never selects matplotlib's backend nor keeps figures in pyplot's registry."""
+    fig = Figure(figsize=kwargs.pop("figsize"))
+    return fig, fig.subplots(*grid, **kwargs)
+
+
+def _save(fig: Figure, path: pathlib.Path) -> pathlib.Path:
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -95,7 +99,7 @@ def plot_depth_scatter(z_gt: np.ndarray, z_pred: np.ndarray, scatter: DepthScatt
 def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthScatter]], path: str | pathlib.Path) -> pathlib.Path:
     """Figure 8 side by side: one panel (title, true depth, predicted depth (m), its
     `metrics.depth_scatter`) per model, on shared axes."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
     everything = np.concatenate([np.concatenate([np.ravel(z_gt), np.ravel(z_pred)]) for _, z_gt, z_pred, _ in panels])
     everything = everything[np.isfinite(everything)]
     lo, hi = (float(everything.min()), float(everything.max())) if everything.size else (0.0, 1.0)
@@ -128,7 +132,7 @@ def plot_metric_vs_condition(
     """One line per method of a metric across ordered conditions (e.g. error vs dropped
     frames), with bootstrap 95% intervals as error bars."""
     crowded = sum(len(c) for c in conditions) > 40  # long names (e.g. table 5's rows) would overlap on the axis
-    fig, ax = plt.subplots(figsize=(max(4.6, 0.55 * len(conditions)), 4.6 if crowded else 3.4))
+    fig, ax = _subplots(figsize=(max(4.6, 0.55 * len(conditions)), 4.6 if crowded else 3.4))
     for method in dict.fromkeys(r.method for r in records):
         pts = [next((r for r in records if r.method == method and r.metric == metric and r.condition == c), None) for c in conditions]
         y = np.asarray([p.value if p else np.nan for p in pts])
@@ -148,9 +152,9 @@ def plot_learning_curves(steps: list[dict], validation: list[dict], path: str | 
     about 2 % of the run, log scale) against the step, and beside it the validation
     P-MPJPE and wrist error (mm) per condition (`views`) when there is any."""
     panels = 2 if validation else 1
-    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 3.8), squeeze=False)
+    fig, axes = _subplots(1, panels, figsize=(5.2 * panels, 3.8), squeeze=False)
     ax = axes[0, 0]
-    ax.set_prop_cycle(color=plt.cm.tab20.colors)
+    ax.set_prop_cycle(color=matplotlib.colormaps["tab20"].colors)
     x = np.asarray([row["step"] for row in steps])
     width = max(len(steps) // 50, 1)
     for key in ["loss"] + sorted(k for k in (steps[0] if steps else {}) if k.startswith("loss/")):
@@ -177,7 +181,7 @@ def plot_learning_curves(steps: list[dict], validation: list[dict], path: str | 
 
 
 def plot_pck(thresholds_m: np.ndarray, curve: np.ndarray, path: str | pathlib.Path, label: str = "") -> pathlib.Path:
-    fig, ax = plt.subplots(figsize=(4.2, 3.2))
+    fig, ax = _subplots(figsize=(4.2, 3.2))
     ax.plot(np.asarray(thresholds_m) * 1000, curve, label=label or None)
     ax.set_xlabel("threshold (mm)")
     ax.set_ylabel("PCK")
@@ -201,7 +205,7 @@ def plot_intervals(
     """One interval per category (a bar from `lower` to `upper`, a dashed line on to
     `outer` where given) and, per series of `points`, one marker per category: e.g.
     measured errors against the band they should fall in. NaN values are left out."""
-    fig, ax = plt.subplots(figsize=(max(3.6, 1.1 * len(names) + 1.5), 3.6))
+    fig, ax = _subplots(figsize=(max(3.6, 1.1 * len(names) + 1.5), 3.6))
     x = np.arange(len(names), dtype=float)
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     ax.bar(x, hi - lo, bottom=lo, width=0.5, color="#cbd5e0", edgecolor="#718096", label="interval")
@@ -233,7 +237,7 @@ def plot_attention_shares(
     (`eval.attention.HandAttention.share`, e.g. stereo, view-mask, pure-monocular) and,
     dotted in its colour, the share uniform attention would give (its `chance`), as the
     paper's size-depth binding study (figure 7)."""
-    fig, ax = plt.subplots(figsize=(4.6, 3.4))
+    fig, ax = _subplots(figsize=(4.6, 3.4))
     layers = max(len(np.atleast_1d(s)) for s in shares.values())
     for i, (name, share) in enumerate(shares.items()):
         y = np.asarray(share, float)
@@ -277,7 +281,7 @@ def plot_attention_maps(
     if hand_mask is not None and 0 < np.sum(hand_mask) < np.size(hand_mask):  # some and not all: a boundary to draw
         outline = np.asarray(hand_mask, float)
         centres = (np.arange(outline.shape[0]) + 0.5) * size / outline.shape[0] - 0.5  # patch centres (px)
-    fig, axes = plt.subplots(len(maps), layers, figsize=(2.0 * layers, 2.0 * len(maps)), squeeze=False)
+    fig, axes = _subplots(len(maps), layers, figsize=(2.0 * layers, 2.0 * len(maps)), squeeze=False)
     for row, (name, per_layer) in enumerate(maps.items()):
         for col in range(layers):
             ax = axes[row, col]
