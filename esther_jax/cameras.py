@@ -24,12 +24,13 @@ from jaxtyping import Array, Bool, Float
 from .files import read_json, write_json
 from ._math import apply3, eps, safe_norm
 
-_Z_MIN = 1e-6
-"""Smallest depth (m) treated as in front of a camera; projection divides by max(|z|, this)."""
+_DEPTH_GUARD_M = 1e-6
+"""Depth guard (m): projection divides by this where |z| is smaller (no division by zero),
+and a point counts as in front of a camera only beyond it."""
 
 
 def _safe_depth(z: Array) -> Array:
-    return jnp.where(jnp.abs(z) < _Z_MIN, _Z_MIN, z)
+    return jnp.where(jnp.abs(z) < _DEPTH_GUARD_M, _DEPTH_GUARD_M, z)
 
 
 def _inside_image(uv: Float[Array, "*batch 2"], width: int, height: int, margin: float = 0.0) -> Bool[Array, "*batch"]:
@@ -145,7 +146,7 @@ class PinholeCamera(AbstractCamera):
 
     @_takes(3, "points (m)")
     def is_visible(self, point_cam: Float[Array, "*batch 3"], margin: float = 0.0) -> Bool[Array, "*batch"]:
-        return (point_cam[..., 2] > _Z_MIN) & _inside_image(self.project(point_cam), self.width, self.height, margin)
+        return (point_cam[..., 2] > _DEPTH_GUARD_M) & _inside_image(self.project(point_cam), self.width, self.height, margin)
 
     def scaled(self, scale: float) -> "PinholeCamera":
         return PinholeCamera(
@@ -317,7 +318,7 @@ class Fisheye624Camera(AbstractCamera):
         z = point_cam[..., 2]
         lateral = jnp.sqrt(jnp.sum(point_cam[..., :2] ** 2, axis=-1))
         in_angle = jnp.arctan2(lateral, z) <= self.max_angle
-        return (z > _Z_MIN) & in_angle & _inside_image(self.project(point_cam), self.width, self.height, margin)
+        return (z > _DEPTH_GUARD_M) & in_angle & _inside_image(self.project(point_cam), self.width, self.height, margin)
 
     def scaled(self, scale: float) -> "Fisheye624Camera":
         return Fisheye624Camera(
@@ -376,13 +377,16 @@ class StereoRig(eqx.Module):
     The point methods (`to_views`, `project`, `is_visible`, `depths`, `distances`) take
     points in the rig frame (metres) with any leading batch shape and return one result
     per view stacked on a new leading axis (0 left, 1 right). The two cameras may be of
-    different models: each view is projected with its own camera."""
+    different models: each view is projected with its own camera.
+
+    A rig is calibration only: its display name is metadata beside it (`rig_preset`'s
+    key, `rig.json`'s "name": `rig_name`, `to_json(path, name)`), not a field, so two rigs
+    differing only in name are one pytree structure and share every compiled program."""
 
     left: AbstractCamera
     right: AbstractCamera
     T_left_right: Float[Array, "4 4"]
     """Pose of the right camera in the left (rig) frame: `X_left = T_left_right @ X_right`."""
-    name: str = eqx.field(static=True, default="rig")
 
     @property
     def baseline(self) -> Float[Array, ""]:
@@ -462,11 +466,13 @@ class StereoRig(eqx.Module):
 
     @classmethod
     def from_json(cls, path: str | pathlib.Path) -> "StereoRig":
-        """Read `rig.json` (docs/architecture.md, "File formats"), validating it."""
+        """Read `rig.json` (docs/architecture.md, "File formats"), validating it; its
+        "name", if any, is read by `rig_name`."""
         return cls.from_dict(read_json(path), source=str(path))
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "rig") -> "StereoRig":
+        """The rig of a `rig.json` record (its "name", if any, is not part of the rig)."""
         cams = data.get("cameras") if isinstance(data, dict) else None
         if not isinstance(cams, dict):
             raise ValueError(f"{source}: missing 'cameras' with 'left' and 'right'")
@@ -486,18 +492,26 @@ class StereoRig(eqx.Module):
         baseline = float(np.linalg.norm(T[:3, 3]))
         if baseline < 1e-4:
             raise ValueError(f"{source}: the stereo baseline is {baseline * 1000:.3f} mm; a degenerate rig cannot triangulate")
-        return cls(left, right, jnp.asarray(T, jnp.result_type(float)), str(data.get("name", "rig")))
+        return cls(left, right, jnp.asarray(T, jnp.result_type(float)))
 
-    def to_dict(self) -> dict:
+    def to_dict(self, name: str = "rig") -> dict:
+        """The `rig.json` record of the rig, with the display name `name` beside it."""
         return {
-            "name": self.name,
+            "name": str(name),
             "cameras": {"left": _camera_to_dict(self.left), "right": _camera_to_dict(self.right)},
             "T_left_right": np.asarray(self.T_left_right, np.float64).tolist(),
         }
 
-    def to_json(self, path: str | pathlib.Path) -> pathlib.Path:
-        """Write `rig.json` atomically."""
-        return write_json(path, self.to_dict())
+    def to_json(self, path: str | pathlib.Path, name: str = "rig") -> pathlib.Path:
+        """Write `rig.json` atomically, with the display name `name` (`rig_name` reads it)."""
+        return write_json(path, self.to_dict(name))
+
+
+def rig_name(path: str | pathlib.Path) -> str:
+    """The display name a `rig.json` records ("rig" when it has none): metadata beside the
+    calibration, which `StereoRig.from_json` reads."""
+    data = read_json(path)
+    return str(data.get("name", "rig")) if isinstance(data, dict) else "rig"
 
 
 def _image_size(d: dict, key: str, where: str) -> int:
@@ -577,13 +591,14 @@ def rig_preset(name: str) -> StereoRig:
 
     The HOT3D distortion coefficients are *plausible values* of the magnitude real
     Aria / Quest 3 calibrations have (rounded, smoothed), not any device's calibration;
-    images are upright with the baseline along +x.
+    images are upright with the baseline along +x. The rig does not carry `name`: a
+    `rig.json` records it beside the calibration (`rig.to_json(path, name)`).
     """
     if name in ("esther", "esther_mocap"):
         cam = PinholeCamera(623.0, 623.0, 924.0, 606.0, 1920, 1200)
         T = np.eye(4)
         T[0, 3] = 0.062
-        return StereoRig(cam, cam, jnp.asarray(T, jnp.result_type(float)), name)
+        return StereoRig(cam, cam, jnp.asarray(T, jnp.result_type(float)))
     if name == "hot3d_aria":
         left = Fisheye624Camera.from_params(
             [241.0, 319.5, 239.5, -0.027, 0.100, -0.070, 0.012, 0.002, -0.0005, 0.0005, -0.0015, 0.0, 0.0, 0.002, 0.0], 640, 480
@@ -592,7 +607,7 @@ def rig_preset(name: str) -> StereoRig:
             [241.0, 320.5, 238.5, -0.026, 0.095, -0.062, 0.006, 0.003, -0.0006, 0.002, -0.001, -0.002, 0.0, 0.002, 0.0], 640, 480
         )
         T = _toed_out_pair(0.138, math.radians(75.0))
-        return StereoRig(left, right, jnp.asarray(T, jnp.result_type(float)), name)
+        return StereoRig(left, right, jnp.asarray(T, jnp.result_type(float)))
     if name == "hot3d_quest3":
         left = Fisheye624Camera.from_params(
             [504.0, 504.0, 639.5, 511.5, 0.044, -0.045, 0.017, -0.011, 0.0035, -0.0005, 0.0005, 0.0, 0.0, 0.0, 0.0, 0.0], 1280, 1024
@@ -601,7 +616,7 @@ def rig_preset(name: str) -> StereoRig:
             [503.0, 503.0, 638.5, 512.5, 0.043, -0.046, 0.020, -0.015, 0.005, -0.0008, 0.0, 0.0002, 0.0, 0.0, 0.0, 0.0], 1280, 1024
         )
         T = _toed_out_pair(0.064, math.radians(1.5))
-        return StereoRig(left, right, jnp.asarray(T, jnp.result_type(float)), name)
+        return StereoRig(left, right, jnp.asarray(T, jnp.result_type(float)))
     raise ValueError(f"unknown rig preset {name!r}; choose one of {RIG_PRESETS}")
 
 

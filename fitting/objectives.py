@@ -101,7 +101,8 @@ class FrameData(eqx.Module):
 
 class Problem(eqx.Module):
     """What every objective needs besides the unknowns (all traced: one compiled solver
-    serves every rig of the same camera models, every hand model and every fps)."""
+    serves every rig of the same camera models and image sizes, every hand model and every
+    fps)."""
 
     model: mano.ManoModel
     rig: StereoRig

@@ -6,9 +6,9 @@
 `label_hand` validates its inputs on the host (shapes, values, fps), moves them to the
 device once, runs every stage there and brings the labels back once. Frames are padded
 to a multiple of 32 (unobserved frames), so one clip-length bucket compiles once; the
-rig's calibration, the hand model, the weights and the fps are traced data, and the rig's
-name and image size are not read, so one compiled program serves every rig of the same
-camera models. Nothing compiled contains a host callback, so every program is stored in
+rig's calibration, the hand model, the weights and the fps are traced data, so one
+compiled program serves every rig of the same camera models and image sizes (the image
+size is a camera's static field; a rig has no name). Nothing compiled contains a host callback, so every program is stored in
 the persistent compilation cache (`esther_jax.enable_compilation_cache`).
 
 Frames seen by both views are stereo frames; frames seen by one view are labelled too
@@ -76,13 +76,6 @@ class LabelConfig:
 def bucket_length(frames: int) -> int:
     """Padded clip length: a multiple of 32 (one compiled program per bucket)."""
     return max(BUCKET, -(-frames // BUCKET) * BUCKET)
-
-
-def traced_rig(rig: StereoRig) -> StereoRig:
-    """The rig as the teacher's programs see it: calibration only. Name and image size
-    are static fields (part of a compiled program's key) that the teacher never reads."""
-    strip = lambda cam: dataclasses.replace(cam, width=1, height=1)  # noqa: E731
-    return StereoRig(strip(rig.left), strip(rig.right), rig.T_left_right, "rig")
 
 
 FAR_OUTSIDE = 0.5
@@ -241,20 +234,19 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
     host.update(mono_orient=mono_orient, mono_pose=mono_pose)
     dev = {k: jnp.asarray(v, dtype) for k, v in host.items()}  # the one transfer in
     mono_has = jnp.asarray(mono_has)
-    rig_t = traced_rig(rig)
     weights = jax.tree.map(lambda x: jnp.asarray(x, dtype), config.weights)
     zeros = jnp.zeros(model.num_betas, dtype)
     fps_t = jnp.asarray(fps, dtype)
 
-    fused, evidence = _prepare(model, rig_t, dev["uv"], dev["conf"], dev["box"], dev["box_score"])
+    fused, evidence = _prepare(model, rig, dev["uv"], dev["conf"], dev["box"], dev["box_score"])
     seen, observed, stereo = _observed(evidence, config.min_joints_per_view)
     frame_valid = jnp.arange(L) < T
     observed, stereo = jax.block_until_ready((observed & frame_valid, stereo & frame_valid))
     timings["fuse_filter_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    problem = _problem(model, rig_t, weights, zeros, fps_t)
-    init, pose0 = _start(model, rig_t, evidence, zeros, dev["mono_orient"], dev["mono_pose"], mono_has)
+    problem = _problem(model, rig, weights, zeros, fps_t)
+    init, pose0 = _start(model, rig, evidence, zeros, dev["mono_orient"], dev["mono_pose"], mono_has)
     data = stages.frame_data(evidence, init, problem)
     solver = dict(steps=config.steps, solver=config.solver)
     lock = stages.shape_lock(
@@ -270,8 +262,8 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
         raise ValueError(f"shape must be betas of shape ({model.num_betas},), got {np.shape(shape)}")
     borrowed = jnp.asarray(shape if has_shape else np.zeros(model.num_betas), dtype)
     betas = jnp.where(lock.from_monocular & has_shape, borrowed, lock.betas)
-    problem = _problem(model, rig_t, weights, betas, fps_t)
-    init = _restart(model, rig_t, evidence, betas, dev["mono_orient"], mono_has, init)
+    problem = _problem(model, rig, weights, betas, fps_t)
+    init = _restart(model, rig, evidence, betas, dev["mono_orient"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
     fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
     jax.block_until_ready(fits)
@@ -283,7 +275,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
     timings["refine_motion_s"] = time.perf_counter() - t3
 
     t4 = time.perf_counter()
-    joints, residual, passing, per_frame = _finish(model, rig_t, fits, fused, seen, observed, jnp.asarray(config.reject_px, dtype))
+    joints, residual, passing, per_frame = _finish(model, rig, fits, fused, seen, observed, jnp.asarray(config.reject_px, dtype))
     out = jax.device_get(  # the one transfer out
         dict(fits=fits, joints=joints, residual=residual, passing=passing, per_frame=per_frame, observed=observed,
              stereo=stereo, seen=seen, betas=betas, chosen=lock.chosen, from_mono=lock.from_monocular,

@@ -72,7 +72,7 @@ from esther_jax.files import atomic_output, check_out_dir, write_json
 from .evidence import prefilter, template_bones
 from .fusion import fuse
 from .label import label_clips
-from .pipeline import LabelConfig, far_outside_image, traced_rig
+from .pipeline import LabelConfig, far_outside_image
 from .quality import frame_quality, label_quality, reprojection_filter
 
 RIGS = ("esther_mocap", "hot3d_quest3", "hot3d_aria")
@@ -200,7 +200,7 @@ def hand_frames(
     arrays = [keypoints["uv"], conf, keypoints["box"], keypoints["box_score"], labels["joints"], gt["joints"], labels["transl"],
               labels["residual_px"], labels["betas"]]  # fmt: skip
     quality, errors = jax.device_get(
-        _hand_frames(mano.load_builtin(side), traced_rig(rig), *(jnp.asarray(a, dtype) for a in arrays), min_joints=config.min_joints_per_view)
+        _hand_frames(mano.load_builtin(side), rig, *(jnp.asarray(a, dtype) for a in arrays), min_joints=config.min_joints_per_view)
     )
     masks = {
         "onscreen": np.asarray(gt["onscreen"], bool),

@@ -46,4 +46,4 @@ def mixed_rig():
     from esther_jax import cameras
 
     esther, quest3 = cameras.rig_preset("esther"), cameras.rig_preset("hot3d_quest3")
-    return cameras.StereoRig(esther.left, quest3.right, esther.T_left_right, "mixed")
+    return cameras.StereoRig(esther.left, quest3.right, esther.T_left_right)

@@ -15,7 +15,6 @@ import pytest
 
 from esther_jax import compilation
 from esther_jax.cameras import rig_preset
-from fitting.pipeline import traced_rig
 
 
 class Scaled(eqx.Module):
@@ -49,7 +48,7 @@ def store(tmp_path, monkeypatch):
 
 
 def _inputs():
-    rig = traced_rig(rig_preset("esther"))
+    rig = rig_preset("esther")
     x = Scaled(jnp.asarray([[0.05, -0.02, 0.4], [0.0, 0.03, 0.5]], jnp.float32), jnp.asarray(1.5, jnp.float32), "hand")
     return rig, x
 
@@ -252,3 +251,35 @@ def test_persistent_jit_composes_with_transformations(store):
     assert not list(store.glob("*.jaxexport"))  # nothing traced under a transformation is stored
     f(v, w)
     assert len(list(store.glob("*.jaxexport"))) == 1
+
+
+def test_two_rigs_differing_only_in_name_trace_the_teacher_once(tmp_path):
+    """A rig's display name is `rig.json` metadata beside the calibration, not part of the
+    traced rig: the teacher's per-rig stages (`prefilter`, `initialise`: triangulation and
+    the palm pose in the rig) trace once for two `rig.json` files that differ only in name,
+    and compute the same."""
+    from esther_jax import mano
+    from esther_jax.cameras import StereoRig, rig_name
+    from esther_jax.files import write_json
+
+    import fitting
+
+    record = rig_preset("esther").to_dict()
+    rigs = [StereoRig.from_json(write_json(tmp_path / f"{name}.json", {**record, "name": name})) for name in ("esther", "another")]
+    assert [rig_name(tmp_path / f"{name}.json") for name in ("esther", "another")] == ["esther", "another"]
+    model = mano.load_builtin("right")
+    dtype = jnp.result_type(float)
+    params = mano.ManoParams(jnp.asarray([2.6, 0.2, -0.3], dtype), jnp.zeros((15, 3), dtype), jnp.zeros(10, dtype), jnp.asarray([0.05, 0.1, 0.4], dtype))
+    uv = jnp.moveaxis(rigs[0].project(mano.forward_joints(model, params)[None]), 0, 1)  # (1 frame, 2 views, 21, 2)
+    box = jnp.concatenate([uv.min(axis=2), uv.max(axis=2)], axis=-1)
+    fused = fitting.fuse(uv[None], jnp.ones(uv.shape[:-1], dtype)[None], box[None], jnp.ones(uv.shape[:2], dtype)[None])
+
+    def per_rig(rig, fused, model):
+        evidence = fitting.prefilter(rig, fused, fitting.template_bones(model))
+        return evidence, fitting.initialise(model, rig, evidence, jnp.zeros(10, dtype))
+
+    stages = eqx.filter_jit(eqx.debug.assert_max_traces(per_rig, max_traces=1))
+    first, second = (stages(rig, fused, model) for rig in rigs)
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_allclose(np.asarray(first[1].transl[0]), np.asarray(params.transl), atol=5e-3)  # a real fit: the wrist

@@ -15,6 +15,7 @@ import pathlib
 from types import SimpleNamespace
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -209,7 +210,8 @@ def test_detect_clip_writes_a_clip_the_teacher_reads(tmp_path, two_hands, rig_na
         np.testing.assert_allclose(kp["uv"][0][visible], expected[visible], atol=2e-3)  # mapped back exactly (float32 file)
         assert np.all(kp["conf"][0][~visible] == 0)
     assert (clip / "video" / "left.mp4").is_file() and clips.read_video(clip / "video" / "left.mp4").shape[0] == FRAMES
-    assert cameras.StereoRig.from_json(clip / "rig.json").name == rig.name
+    written = cameras.StereoRig.from_json(clip / "rig.json")  # an in-memory rig has no name: "rig"
+    assert jax.tree.structure(written) == jax.tree.structure(rig) and cameras.rig_name(clip / "rig.json") == "rig"
     assert not (clip / ".detect").exists()
 
 
@@ -226,8 +228,10 @@ def test_detect_clip_resumes_without_redoing_frames(tmp_path, two_hands):
                 factories={"truth": _factory(two_hands, rig, second)})  # fmt: skip
     assert sorted({t for _, t in second}) == [t / 30 for t in range(3, FRAMES)]  # frames 0-2 were saved, 3-4 lost
     fresh: list = []
-    detect_clip(left, right, rig, tmp_path / "fresh", detectors=("truth",), fps=30.0, progress=False,
+    named = rig.to_json(tmp_path / "rig.json", "esther")  # from a rig.json: the clip's keeps its name
+    detect_clip(left, right, named, tmp_path / "fresh", detectors=("truth",), fps=30.0, progress=False,
                 factories={"truth": _factory(two_hands, rig, fresh)})  # fmt: skip
+    assert cameras.rig_name(tmp_path / "fresh" / "rig.json") == "esther"
     for side in ("right", "left"):
         a = clips.load_npz(clips.hand_file(tmp_path / "clip", side, "keypoints"), "keypoints")
         b = clips.load_npz(clips.hand_file(tmp_path / "fresh", side, "keypoints"), "keypoints")

@@ -159,6 +159,7 @@ def test_clip_tar_import_follows_hot3d_mano_conventions(tmp_path, mano_dir):
         np.testing.assert_array_equal(boxes["box"][:, 0], [[10.0, 20.0, 300.0, 400.0]] * 3)
         assert np.all(np.isnan(boxes["box"][:, 1]))
     assert not clips.hand_file(clip, "left", "gt").exists()
+    assert cameras.rig_name(clip / "rig.json") == "hot3d_clip_clip-000123"  # the display name beside the calibration
 
 
 def test_broken_hot3d_inputs_are_named(tmp_path):

@@ -113,6 +113,24 @@ def test_no_retracing_for_new_values(right):
     f(mano.load_builtin("left"), random_params(9))  # handedness is data: same graph
 
 
+def test_pose_prior_limit_weight_is_traced(right):
+    """Another joint-limit weight is data, not a new program; the default keeps the numbers
+    of the Python float it was (the hinges are 10 times the excess over the limits)."""
+    import dataclasses
+
+    prior = mano.PosePrior.from_model(right)
+    pose = jnp.zeros((15, 3)).at[1].set(jnp.asarray([0.0, 0.0, -1.5]))  # index PIP hyper-extended: a hinge active
+    angles = mano.hand_pose_to_anatomical(pose, prior.frames)
+    excess = (jnp.maximum(angles - prior.upper, 0.0) + jnp.maximum(prior.lower - angles, 0.0)).reshape(45)
+    residuals = eqx.filter_jit(eqx.debug.assert_max_traces(lambda p, x: (p(x), p.normal_equations(x)), max_traces=1))
+    (r10, (g10, _)), (r20, (g20, _)) = residuals(prior, pose), residuals(dataclasses.replace(prior, limit_weight=20.0), pose)
+    assert float(jnp.max(excess)) > 0.1 and r10.dtype == pose.dtype
+    np.testing.assert_array_equal(np.asarray(r10[45:]), np.asarray(10.0 * excess))
+    np.testing.assert_array_equal(np.asarray(r20[45:]), np.asarray(20.0 * excess))
+    np.testing.assert_array_equal(np.asarray(r20[:45]), np.asarray(r10[:45]))
+    assert not np.allclose(np.asarray(g10), np.asarray(g20))
+
+
 @pytest.mark.parametrize("at_zero", [True, False])
 def test_jacobians_match_finite_differences(x64, at_zero):
     model = mano.load_builtin("right")

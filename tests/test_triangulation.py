@@ -116,7 +116,7 @@ def test_degenerate_inputs_are_invalid_and_finite():
     no_view = triangulate_stereo(rig, uv, jnp.zeros(2))
     nan_view = triangulate_stereo(rig, uv.at[1].set(jnp.nan), jnp.ones(2))
     behind = triangulate_stereo(rig, project_rig(rig, -point[None])[0], jnp.ones(2))
-    zero_baseline = StereoRig(rig.left, rig.right, jnp.eye(4), "degenerate")
+    zero_baseline = StereoRig(rig.left, rig.right, jnp.eye(4))
     same_pixel = triangulate_stereo(zero_baseline, jnp.stack([uv[0], uv[0]]), jnp.ones(2))
     other_pixel = triangulate_stereo(zero_baseline, uv, jnp.ones(2))
     far = triangulate_stereo(rig, project_rig(rig, np.array([[0.0, 0.0, 500.0]]))[0], jnp.ones(2))

@@ -69,6 +69,11 @@ class Hot3dSequence:
     boxes: dict  # side -> {"box" (T, 2, 4), "visibility" (T, 2)}
     images: dict | None = None  # view -> list of encoded images (HOT3D-Clips)
 
+    @property
+    def rig_name(self) -> str:
+        """The display name its clip's `rig.json` records: `hot3d_<device>_<name>`."""
+        return f"hot3d_{self.device.lower()}_{self.name}"
+
 
 def _pose(q_wxyz, t_xyz) -> np.ndarray:
     T = np.eye(4)
@@ -83,14 +88,14 @@ def _orthonormal(R: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def _rig(cams: dict, name: str) -> StereoRig:
-    """`cams`: label -> (Fisheye624Camera, T_device_camera)."""
+def _rig(cams: dict, where: str) -> StereoRig:
+    """`cams`: label -> (Fisheye624Camera, T_device_camera); `where` names the source in errors."""
     missing = [label for label in CAMERA_LABELS if label not in cams]
     if missing:
-        raise Hot3dFormatError(f"{name}: cameras {missing} are missing (found {sorted(cams)})")
+        raise Hot3dFormatError(f"{where}: cameras {missing} are missing (found {sorted(cams)})")
     (left, T_device_left), (right, T_device_right) = cams[CAMERA_LABELS[0]], cams[CAMERA_LABELS[1]]
     T_left_right = invert_transform(jnp.asarray(T_device_left)) @ jnp.asarray(T_device_right)
-    return StereoRig(left, right, T_left_right, name)
+    return StereoRig(left, right, T_left_right)
 
 
 def _quest3_cameras(path: pathlib.Path) -> dict:
@@ -306,7 +311,7 @@ def write_sequence(seq: Hot3dSequence, out: str | pathlib.Path, models: dict | N
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written, not_written = ["rig.json", "trajectory.npz"], []
-    seq.rig.to_json(out / "rig.json")
+    seq.rig.to_json(out / "rig.json", seq.rig_name)
     clips.save_npz(out / "trajectory.npz", T_world_rig=seq.T_world_rig.astype(np.float64), timestamps_ns=seq.timestamps_ns)
     for side in clips.SIDES:
         if np.isfinite(seq.boxes[side]["box"]).any():

@@ -82,7 +82,8 @@ def clip_rng(seed: int, index: int) -> np.random.Generator:
 
 @dataclasses.dataclass
 class Clip:
-    """One clip in memory (what `write_clip` stores and `load_clip` returns)."""
+    """One clip in memory (what `write_clip` stores and `load_clip` returns); the rig's
+    display name, which `rig.json` records, is `meta["rig"]` (the preset)."""
 
     rig: StereoRig
     meta: dict
@@ -255,7 +256,7 @@ def write_clip(clip: Clip, folder: str | pathlib.Path) -> pathlib.Path:
 
 
 def _write_clip_files(clip: Clip, tmp: pathlib.Path) -> None:
-    clip.rig.to_json(tmp / "rig.json")
+    clip.rig.to_json(tmp / "rig.json", clip.meta.get("rig", "rig"))  # the preset's name (meta's "rig")
     for side in clip.keypoints:
         clips.save_npz(clips.hand_file(tmp, side, "keypoints"), **clip.keypoints[side])
         clips.save_npz(clips.hand_file(tmp, side, "gt"), **clip.gt[side])

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import clips
-from ..cameras import AbstractCamera, PinholeCamera, StereoRig
+from ..cameras import AbstractCamera, PinholeCamera, StereoRig, rig_name
 from ..crops import RECTIFICATION_STRATEGIES, Crop, box_outline, rectification_map, wide_pinhole
 from ..files import check_out_dir, exclusive_lock
 from .base import Candidates, HandDetection, KeypointDetector
@@ -248,7 +248,7 @@ def detect_clip(
 
     Args:
         left, right: each view's video file or image folder (same number of frames).
-        rig: the rig, or its `rig.json`.
+        rig: the rig, or its `rig.json` (whose "name" the clip's `rig.json` keeps).
         detectors: detector names (`make_detector`); each is one entry of the D axis.
         fps: frame rate; read from the videos when omitted (required for image folders).
         strategy: offbb120 / offbb90 / offbb150, the rectification of fisheye views.
@@ -265,6 +265,7 @@ def detect_clip(
         raise ValueError(f"videos must be 'link', 'copy' or 'encode', got {videos!r}")
     if not detectors:
         raise ValueError("give at least one detector")
+    display_name = "rig" if isinstance(rig, StereoRig) else rig_name(rig)
     rig = rig if isinstance(rig, StereoRig) else StereoRig.from_json(rig)
     sources = (FrameSource(left), FrameSource(right))
     if fps is None:
@@ -295,7 +296,7 @@ def detect_clip(
             if side not in sides:
                 clips.hand_file(out, side, "keypoints").unlink(missing_ok=True)
         _write_videos(sources, out, fps, videos)
-        rig.to_json(out / "rig.json")
+        rig.to_json(out / "rig.json", display_name)
         report = {
             "detectors": list(detectors),
             "rectification": strategy if any(v.rectified for v in views) else None,

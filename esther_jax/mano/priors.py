@@ -22,7 +22,10 @@ class PosePrior(eqx.Module):
     frames: Float[Array, "15 3 3"]
     lower: Float[Array, "15 3"]
     upper: Float[Array, "15 3"]
-    limit_weight: float = eqx.field(static=True, default=10.0)
+    limit_weight: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=10.0)
+    """Weight of the joint-limit hinges: traced (priors of other weights share compiled
+    programs); the default is weakly typed, as the Python float it was, so it takes the
+    pose's dtype."""
 
     @classmethod
     def from_model(cls, model: ManoModel, betas: Float[Array, "10"] | None = None) -> "PosePrior":

@@ -146,15 +146,7 @@ def _clip_arrays(clip: str, side: str, target_file: str):
     crops = clips.load_crops(clips.crops_file(folder, side), mmap=True)
     kind = "gt" if target_file.endswith("gt.npz") else "labels"
     target = clips.load_npz(target_file, kind)
-    return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], _clip_rig(clip), target, kind
-
-
-@functools.lru_cache(maxsize=256)
-def _clip_rig(clip: str) -> StereoRig:
-    """A clip's rig, unnamed: the name is static in the rig's pytree, and HOT3D names the rig
-    of every clip, which would compile `_example` once per clip and pool no two clips
-    (`frame_pools`)."""
-    return dataclasses.replace(StereoRig.from_json(pathlib.Path(clip) / "rig.json"), name="")
+    return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], StereoRig.from_json(folder / "rig.json"), target, kind
 
 
 def _window_arrays(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[dict, StereoRig]:
@@ -231,9 +223,9 @@ def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[
 
 @functools.lru_cache(maxsize=256)
 def _rig_key(clip: str) -> tuple:
-    """A clip's rig (camera models, sizes, intrinsics, poses; not its name) as a key: clips
-    of one rig share it."""
-    leaves, structure = jax.tree.flatten(_clip_rig(clip))
+    """A clip's rig (camera models, sizes, intrinsics, poses; `rig.json`'s name is not part
+    of the rig) as a key: clips of one rig share it."""
+    leaves, structure = jax.tree.flatten(StereoRig.from_json(pathlib.Path(clip) / "rig.json"))
     return str(structure), tuple(np.asarray(x, np.float64).tobytes() for x in leaves)
 
 
