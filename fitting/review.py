@@ -20,11 +20,6 @@ from esther_jax.mano import KEYPOINT_PARENTS
 _FINGER_COLOURS = [(255, 255, 255)] + [(230, 80, 80)] * 4 + [(240, 200, 60)] * 4 + [(80, 200, 90)] * 4 + [(70, 150, 240)] * 4 + [(200, 90, 220)] * 4
 
 
-def project_views(rig: StereoRig, points_rig: np.ndarray) -> np.ndarray:
-    """(2, N, 2) pixels of rig-frame points in the left and right views (numpy in and out)."""
-    return np.asarray(rig.project(jnp.asarray(points_rig, rig.T_left_right.dtype)), np.float64)
-
-
 def draw_skeleton(image: np.ndarray, uv: np.ndarray, thickness: int = 2) -> np.ndarray:
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
     for j, p in enumerate(KEYPOINT_PARENTS):
@@ -91,7 +86,7 @@ def review_sheet(
         return None
     tiles, captions = [], []
     for t in frames:
-        uv = project_views(rig, labels["joints"][t].astype(np.float64))
+        uv = np.asarray(rig.project(jnp.asarray(labels["joints"][t], rig.T_left_right.dtype)), np.float64)  # (2 views, 21, 2)
         row = []
         for v, (view, camera) in enumerate((("left", rig.left), ("right", rig.right))):
             base = images[view][t] if images else np.full((camera.height, camera.width, 3), 60, np.uint8)

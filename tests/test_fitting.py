@@ -68,9 +68,7 @@ def test_prefilter_rejects_implausible_depths_and_isolated_bones():
 
 
 def motion_uv(rig, joints):
-    from esther_jax.data import detector
-
-    return detector.project_views(rig, joints[None])[0]
+    return np.asarray(rig.project(jnp.asarray(joints, jnp.result_type(float))), np.float64)
 
 
 def test_initialisation_recovers_the_wrist_and_orientation_without_flips():

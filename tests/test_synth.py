@@ -7,7 +7,7 @@ import pytest
 
 from esther_jax import cameras, cli, clips, mano, metrics
 from esther_jax.crops import HAND_CROP_PADDING, crop_camera, crop_poses, rectified_crop
-from esther_jax.data import detector, flow, motion, render, synth
+from esther_jax.data import flow, motion, render, synth
 from esther_jax.rotations import axis_angle_to_matrix
 
 
@@ -20,7 +20,7 @@ def test_clean_detections_equal_projected_joints(clean_clip):
     rig = clean_clip.rig
     for side, kp in clean_clip.keypoints.items():
         joints = clean_clip.gt[side]["joints"].astype(np.float64)
-        uv_true = detector.project_views(rig, joints)
+        uv_true = np.moveaxis(np.asarray(rig.project(jnp.asarray(joints, jnp.result_type(float))), np.float64), 0, 1)  # (T, 2, 21, 2)
         visible = clean_clip.gt[side]["visibility"]
         for d in range(2):
             np.testing.assert_allclose(kp["uv"][d][visible], uv_true[visible], atol=1e-3)
@@ -33,7 +33,7 @@ def test_default_detector_is_noisy_and_confidence_tracks_error():
     clip = synth.make_clip(3, 2, synth.SynthConfig(num_frames=64))
     side = next(iter(clip.keypoints))
     kp, gt = clip.keypoints[side], clip.gt[side]
-    uv_true = detector.project_views(clip.rig, gt["joints"].astype(np.float64))
+    uv_true = np.moveaxis(np.asarray(clip.rig.project(jnp.asarray(gt["joints"], jnp.result_type(float))), np.float64), 0, 1)
     err = np.linalg.norm(kp["uv"] - uv_true[None], axis=-1)
     observed = kp["conf"] > 0
     assert 0.5 < np.median(err[observed]) < 15.0

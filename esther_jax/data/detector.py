@@ -73,12 +73,6 @@ PRESETS: dict[str, tuple[DetectorModel, DetectorModel]] = {
 }
 
 
-def project_views(rig: StereoRig, joints_rig: np.ndarray) -> np.ndarray:
-    """(T, 2, J, 2) pixels of rig-frame joints (T, J, 3) in the left and right views."""
-    uv = rig.project(jnp.asarray(joints_rig, jnp.result_type(float)))  # (2, T, J, 2)
-    return np.moveaxis(np.asarray(uv, np.float64), 0, 1)
-
-
 def simulate(
     rng: np.random.Generator,
     uv_true: np.ndarray,
@@ -143,7 +137,8 @@ def simulate_detectors(
     """Both detectors on one hand, stacked on a leading detector axis (the keypoints.npz layout)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown detector preset {preset!r}; choose one of {sorted(PRESETS)}")
-    uv_true = project_views(rig, joints_rig)
-    in_image = np.moveaxis(np.asarray(rig.is_visible(jnp.asarray(joints_rig, jnp.result_type(float)))), 0, 1)  # (T, 2, 21)
+    X_rig = jnp.asarray(joints_rig, jnp.result_type(float))
+    uv_true = np.moveaxis(np.asarray(rig.project(X_rig), np.float64), 0, 1)  # (T, 2, 21, 2)
+    in_image = np.moveaxis(np.asarray(rig.is_visible(X_rig)), 0, 1)  # (T, 2, 21)
     runs = [simulate(rng, uv_true, visibility, in_image, (rig.left.width, rig.left.height), m) for m in PRESETS[preset]]
     return {k: np.stack([r[k] for r in runs]).astype(np.float32) for k in runs[0]}

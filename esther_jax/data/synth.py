@@ -203,7 +203,7 @@ def _render_crops(clip: Clip, m: motion.ClipMotion, scene: render.Scene, cfg: Sy
     T_rig_cams, T_cams_rig = np.asarray(rig.T_rig_cams, np.float64), np.asarray(rig.T_cams_rig, np.float64)
     vertices = {side: np.asarray(track.vertices, np.float64) for side, track in m.hands.items()}
     for side, track in m.hands.items():
-        uv = detector.project_views(rig, np.asarray(track.joints, np.float64))  # (T, 2, 21, 2)
+        uv = np.moveaxis(np.asarray(rig.project(jnp.asarray(track.joints, jnp.result_type(float))), np.float64), 0, 1)  # (T, 2, 21, 2)
         images = np.zeros((T, 2, S, S) + (() if scene.grayscale else (3,)), np.uint8)
         K = np.zeros((T, 2, 3, 3), np.float32)
         R = np.zeros((T, 2, 3, 3), np.float32)
