@@ -66,7 +66,9 @@ from ..model.stereo_encoder import depth_bin_centres
 from ..rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_rotation_6d
 
 STAGES = ("image", "joint")
-_Z_MIN = 1e-3  # metres: a joint closer to (or behind) a crop camera does not project
+_CROP_NEAR_M = 1e-3
+"""Metres: a joint nearer to a crop camera than this (or behind it) projects nowhere in its
+crop (its pixel is not used, and it is not inside the crop)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,10 +153,10 @@ def crop_projections(
     R, t = T_rig_crop[..., :3, :3], T_rig_crop[..., :3, 3]  # (T, 2, 3, 3), (T, 2, 3)
     X = jnp.einsum("tvji,tvnj->tvni", R, joints[:, None, :, :] - t[:, :, None, :])  # crop-camera frame
     z = X[..., 2]
-    zs = jnp.where(z > _Z_MIN, z, 1.0)
+    zs = jnp.where(z > _CROP_NEAR_M, z, 1.0)
     K = jnp.asarray(clip.K, jnp.float32)
     uv = jnp.einsum("tvij,tvnj->tvni", K[..., :2, :2], X[..., :2] / zs[..., None]) + K[:, :, None, :2, 2]
-    inside = jnp.all((uv >= -0.5) & (uv < crop_size - 0.5), axis=-1) & (z > _Z_MIN)
+    inside = jnp.all((uv >= -0.5) & (uv < crop_size - 0.5), axis=-1) & (z > _CROP_NEAR_M)
     return uv, z, inside
 
 
