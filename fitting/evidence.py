@@ -35,14 +35,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from esther_jax import mano
+from esther_jax import mano, safe_norm, safe_normalize
 from esther_jax.cameras import StereoRig, apply_transform
 from esther_jax.mano import KEYPOINT_PARENTS, PALM_KEYPOINTS
 from esther_jax.rotations import axis_angle_left_jacobian, axis_angle_to_matrix, matrix_to_axis_angle, skew
 from esther_jax.triangulation import triangulate_rig
 
 from .fusion import Fused
-from .priors import huber_vector, huber_vector_with_jacobian, vector_norm
+from .priors import huber_vector, huber_vector_with_jacobian
 from .solve import gauss_newton, levenberg_marquardt
 
 DEPTH_RANGE_M = (0.1, 1.0)
@@ -240,7 +240,7 @@ def palm_residuals(y: PalmUnknowns, args) -> tuple[Float[Array, "36"]]:
     R, t = y.pose(R0, t0)
     X = (P @ R.T) + t[None]
     X_views = rig.to_views(X)  # (2, 6, 3)
-    direction = X_views / vector_norm(X_views)[..., None]
+    direction = safe_normalize(X_views)
     e = huber_vector(direction - rays, PNP_HUBER_RAD) * jnp.sqrt(w)[..., None]
     return (e.reshape(-1),)
 
@@ -260,10 +260,10 @@ def palm_residuals_and_jacobian(y: PalmUnknowns, args) -> tuple[Float[Array, "36
     R_views = rig.T_cams_rig[:, :3, :3]
     dX_views = jnp.concatenate([  # (2, 6, 3, 6): turning, then moving the wrist
         jnp.einsum("vab,ibu->viau", R_views, turn), jnp.broadcast_to(0.01 * R_views[:, None], (2, 6, 3, 3))], axis=-1)  # fmt: skip
-    n = vector_norm(X_views)[..., None]
-    direction = X_views / n
+    n = safe_norm(X_views)[..., None]
+    direction = safe_normalize(X_views)
     along = jnp.einsum("via,viau->viu", direction, dX_views)[..., None, :]  # (2, 6, 1, 6)
-    d_direction = (dX_views - direction[..., None] * along) / n[..., None]
+    d_direction = (dX_views - direction[..., None] * along) / jnp.where(n > 0.0, n, 1.0)[..., None]
     e, d_e = huber_vector_with_jacobian(direction - rays, d_direction, PNP_HUBER_RAD)
     root_w = jnp.sqrt(w)[..., None]
     return (e * root_w).reshape(36), (d_e * root_w[..., None]).reshape(36, 6)

@@ -27,17 +27,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from esther_jax import safe_norm
 
 
 def huber_residual(r: Array, delta: float | Array) -> Array:
     """s with 0.5 * s**2 == huber(r); s == r when |r| <= delta."""
     a = jnp.maximum(jnp.abs(r), delta)
     return r * jnp.sqrt(delta * (2.0 * a - delta)) / a
-
-
-def vector_norm(e: Float[Array, "*batch d"]) -> Float[Array, "*batch"]:
-    """The length of each vector, smoothed at 0 (finite gradient): what `huber_vector` scales by."""
-    return jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12)
 
 
 def huber_factor(norm: Array, delta: float | Array) -> Array:
@@ -48,17 +44,18 @@ def huber_factor(norm: Array, delta: float | Array) -> Array:
 
 def huber_vector(e: Float[Array, "*batch d"], delta: float | Array) -> Float[Array, "*batch d"]:
     """Isotropic Huber on the norm of each vector (e.g. a 2D reprojection error)."""
-    return e * huber_factor(vector_norm(e), delta)[..., None]
+    return e * huber_factor(safe_norm(e), delta)[..., None]
 
 
 def huber_vector_with_jacobian(
     e: Float[Array, "*batch d"], de: Float[Array, "*batch d n"], delta: float | Array
 ) -> tuple[Float[Array, "*batch d"], Float[Array, "*batch d n"]]:
     """`huber_vector(e, delta)` and its Jacobian in n unknowns, given e's Jacobian `de`
-    (the chain rule through the norm: the factor's slope times d|e| = e . de / |e|)."""
-    norm = vector_norm(e)
+    (the chain rule through the norm: the factor's slope times d|e| = e . de / |e|; at
+    e = 0 the slope is 0, and so is d|e|, not NaN)."""
+    norm = safe_norm(e)
     factor, slope = jax.jvp(lambda n: huber_factor(n, delta), (norm,), (jnp.ones_like(norm),))  # elementwise
-    d_norm = jnp.einsum("...a,...an->...n", e, de) / norm[..., None]
+    d_norm = jnp.einsum("...a,...an->...n", e, de) / jnp.where(norm > 0.0, norm, 1.0)[..., None]
     return e * factor[..., None], factor[..., None, None] * de + e[..., None] * (slope[..., None] * d_norm)[..., None, :]
 
 

@@ -148,6 +148,27 @@ def test_normal_equations_from_the_objectives_structure_equal_the_full_jacobians
         np.testing.assert_allclose(H_fast, H, rtol=1e-9, atol=1e-9 * float(jnp.abs(H).max()))
 
 
+def test_huber_vector_is_finite_at_zero_and_equals_the_smoothed_norms():
+    """The robust vector terms scale by the core's safe norm: at a zero residual the value,
+    the closed-form Jacobian and the gradient are finite (no 0 / 0), and elsewhere they equal
+    what the former sqrt(|e|^2 + 1e-12) gave, to float32 precision."""
+    from fitting.priors import huber_factor, huber_vector, huber_vector_with_jacobian
+
+    e = jnp.asarray([[0.0, 0.0], [1e-9, 0.0], [0.3, -0.4], [3.0, 4.0], [-20.0, 7.0]], jnp.float32)
+    delta = 1.5
+    smoothed = e * huber_factor(jnp.sqrt(jnp.sum(e * e, axis=-1) + 1e-12), delta)[..., None]
+    np.testing.assert_allclose(np.asarray(huber_vector(e, delta)), np.asarray(smoothed), rtol=1e-6, atol=0.0)
+    de = jnp.asarray(np.random.default_rng(0).normal(size=(5, 2, 3)), jnp.float32)  # e's Jacobian in 3 unknowns
+    value, jacobian = huber_vector_with_jacobian(e, de, delta)
+    autodiff = jnp.einsum("kab,kbn->kan", jax.vmap(jax.jacfwd(lambda v: huber_vector(v, delta)))(e), de)
+    assert bool(jnp.all(jnp.isfinite(jacobian)))
+    np.testing.assert_allclose(np.asarray(value), np.asarray(huber_vector(e, delta)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jacobian), np.asarray(autodiff), rtol=1e-5, atol=1e-6)
+    grad = jax.grad(lambda v: jnp.sum(huber_vector(v, delta) ** 2))(e)
+    assert bool(jnp.all(jnp.isfinite(grad)))
+    np.testing.assert_allclose(np.asarray(grad[:3]), 2.0 * np.asarray(e[:3]), rtol=1e-6, atol=1e-12)  # within delta: |e|^2
+
+
 def test_priors_are_residual_callables():
     model = mano.load_builtin("right")
     prior = PosePrior.from_model(model)

@@ -111,6 +111,10 @@ def test_each_loss_term_equals_its_hand_computed_value(hand):
     z = np.stack([np.asarray(prior.whitening) @ (np.asarray(p).reshape(45) - np.asarray(prior.mean)) for p in targets.hand_pose])
     assert float(means["pose_prior"]) == pytest.approx(float(np.mean(z**2)), rel=1e-4)
     assert float(means["shape_prior"]) == pytest.approx(float(np.mean(np.asarray(targets.betas) ** 2)), rel=1e-6)
+    # the 2D term's norm is the core's safe norm: a finite, zero gradient at a zero error
+    with_keypoints = lambda k: dataclasses.replace(perfect, image=dataclasses.replace(perfect.image, keypoints_2d=k))  # noqa: E731
+    grad = jax.grad(lambda k: _means(with_keypoints(k), clip, targets, hand)[1]["two_d"])(perfect.image.keypoints_2d)
+    assert bool(jnp.all(jnp.isfinite(grad))) and float(jnp.abs(grad).max()) < 1e-6
 
     # now each term moved by a known amount
     shift = jnp.asarray([0.01, -0.02, 0.0])

@@ -59,6 +59,7 @@ import optax
 from jaxtyping import Array, Bool, Float
 
 from .. import mano
+from .._math import safe_norm
 from ..crops import crop_poses, patch_centres
 from ..model.config import ModelConfig
 from ..model.esther import ClipInput, ESTHEROutput
@@ -198,7 +199,7 @@ def clip_loss_terms(
     visible = inside & present[..., None] & valid[:, None, None]  # (T, 2, 21)
     S = float(crop_size)
     err = (f32(out.image.keypoints_2d) - uv) / S
-    norm = jnp.sqrt(jnp.sum(err * err, axis=-1) + 1e-12)
+    norm = safe_norm(err)
     delta = weights.huber_delta
     huber = jnp.where(norm <= delta, 0.5 * norm**2, delta * (norm - 0.5 * delta))
     terms["two_d"] = _term(huber, visible)
