@@ -38,11 +38,6 @@ FINGERTIP_LANDMARKS: tuple[int, ...] = (0, 1, 2, 3, 4)
 FRAME_STRIDE = 10
 
 
-def to_hot3d_landmarks(keypoints: Float[Array, "21 3"]) -> Float[Array, "20 3"]:
-    """Our 21 keypoints -> HOT3D's 20 canonical landmarks."""
-    return keypoints[jnp.asarray(HOT3D_LANDMARKS_FROM_KEYPOINTS)]
-
-
 def hot3d_sequence_metrics(
     pred: Float[Array, "frames 21 3"], gt: Float[Array, "frames 21 3"], valid: Bool[Array, "frames"] | None = None,
     frame_stride: int = FRAME_STRIDE,
