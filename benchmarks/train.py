@@ -174,7 +174,7 @@ def _baseline(train_windows, val_windows, data_cfg) -> dict:
     that it reads the crops."""
     from esther_jax import clips as clip_format
     from esther_jax.cameras import StereoRig
-    from esther_jax.train.losses import crop_projections
+    from esther_jax.model import crop_projections
     from esther_jax.triangulation import triangulate_rig
 
     def crop_keypoints(clip, t):

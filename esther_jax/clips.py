@@ -106,6 +106,12 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
 
 CROP_KEYS = ("images", "K", "R_cam_crop", "box", "flow")
 
+FLOW_GRID = 8
+"""The camera-motion flow token's grid (appendix D): flow median-pooled over 8 x 8 cells."""
+FLOW_TOKEN_SIZE = 3 * FLOW_GRID * FLOW_GRID
+"""192 numbers per frame: the pooled flow (x, y per cell, divided by 224 px), then one
+in-frame flag per cell (`data.flow` computes them, the motion encoder embeds them)."""
+
 
 def crops_file(clip_dir: str | pathlib.Path, side: str) -> pathlib.Path:
     """Path of a hand's crops inside a clip folder (`crops/<side>.npz`)."""

@@ -35,6 +35,16 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 from ._math import eps, safe_norm, safe_normalize
 from .cameras import StereoRig
 
+METRIC_LABELS = {
+    "p_mpjpe": ("P-MPJPE", "mm"),
+    "pa_mpjpe": ("PA-MPJPE", "mm"),
+    "wrist": ("Wrist", "mm"),
+    "jitter": ("Jitter", "m/s^2"),
+    "mpjpe": ("MPJPE", "mm"),
+    "gt_jitter": ("GT jitter", "m/s^2"),
+}
+"""Display name and reported unit of each metric (tables, figures, learning curves)."""
+
 PCK_MAX_THRESHOLD_M = 0.05
 PCK_NUM_THRESHOLDS = 101
 

@@ -9,7 +9,7 @@ kinematics. The paper's stages are public, typed functions over `eqx.Module`s:
 `label_hand` is their composition for one hand of one clip, `label_hands` for a clip's
 hands as one person's (a hand never seen in stereo takes the other's shape); `label_clip` / `label_clips`
 label clip folders (atomic, resumable). Priors are pluggable (`PosePrior`,
-`MotionPrior`); the solver is part of `LabelConfig` (`SOLVERS`). `fitting.validation` measures
+`MotionPrior`); the solver is part of `LabelConfig` (`SOLVERS`). `esther_jax.studies.teacher_validation` measures
 the teacher against exact ground truth on synthetic held-out clips per rig and detector,
 with appendix N's label quality and admissible band (imported on its own: it draws figures).
 """

@@ -36,7 +36,7 @@ import time
 import jax.numpy as jnp
 
 import esther_jax
-from esther_jax.eval import studies
+from esther_jax import studies
 from esther_jax.eval.reports import plot_attention_maps, plot_attention_shares, plot_depth_scatters
 from esther_jax.metrics import depth_scatter
 

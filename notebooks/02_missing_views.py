@@ -19,7 +19,7 @@
 # `anchored-wrist` ablation (wrist = triangulated wrist + a residual, the design of the
 # triangulation-anchored baselines), and a triangulation baseline with no network at all
 # (the teacher's detectors' 2D keypoints triangulated per joint; with one view a joint
-# lies on its ray at the training set's mean depth: `fitting.baselines`). The paper's claim:
+# lies on its ray at the training set's mean depth: `esther_jax.studies.baselines`). The paper's claim:
 # ESTHER's relative pose barely moves (17.7 -> 18.0 mm P-MPJPE) and its wrist loosens
 # (21.3 -> 32.5 mm), while triangulation-anchored wrists collapse (97-217 mm).
 #
@@ -33,10 +33,10 @@ import time
 import numpy as np
 
 import esther_jax
-from esther_jax.eval import studies
+from esther_jax import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
 from esther_jax.train import validation
-from fitting import baselines
+from esther_jax.studies import baselines
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 
@@ -80,7 +80,7 @@ unlearned = [a for a in "xyz" if a not in learned]
 placement = (
     f": it places the wrist's {' and '.join(learned)} but not its {' and '.join(unlearned)} "
     f"(predicted {unlearned[0]} spread {axes['pred_sd_mm']['xyz'.index(unlearned[0])]:.0f} mm against "
-    f"{axes['true_sd_mm']['xyz'.index(unlearned[0])]:.0f} mm; README, 'Train your own')"
+    f"{axes['true_sd_mm']['xyz'.index(unlearned[0])]:.0f} mm; docs/training.md)"
     if learned and unlearned else ": it has learned no coordinate of the wrist" if unlearned else ""
 )
 clean = results["esther"]["both views"]

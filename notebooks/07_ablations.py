@@ -39,7 +39,7 @@ import numpy as np
 
 import esther_jax
 from esther_jax import model as M
-from esther_jax.eval import studies
+from esther_jax import studies
 from esther_jax.eval.reports import plot_metric_vs_condition
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
@@ -120,7 +120,7 @@ if len(ranked) >= 3:  # where the shifts come from: absolute MPJPE (rig frame) h
         f"{', '.join(f'{r} wrist {wrist_delta(r):+.1f} mm' for r in ranked[:2])}), so the table ranks "
         f"what each ablation does to the wrist. On P-MPJPE, which leaves the wrist out, the most damaging are "
         f"{', '.join(f'{r} ({hand_delta(r):+.1f} mm)' for r in by_hand[:2])}. "
-        f"What was tried on the wrist is in the README ('Train your own')."
+        f"What was tried on the wrist is in docs/training.md."
     )
 print(verdict)
 

@@ -18,7 +18,7 @@
 # exact ground truth on synthetic held-out clips, per rig (the paper's parallel test-set
 # rig, Quest 3, Aria's divergent fisheye pair) and per 2D-detector preset; the label
 # quality table of appendix N; and the check that the measured error falls inside the
-# admissible band [r z / f, sqrt(2) r z² / (f b)] (`fitting.validation`). The paper:
+# admissible band [r z / f, sqrt(2) r z² / (f b)] (`esther_jax.studies.teacher_validation`). The paper:
 # 15.9 mm P-MPJPE and 19.1 mm wrist on its motion-capture set, inside the median band
 # [2.8, 21.3] mm (worst case 30.1 mm).
 #
@@ -29,8 +29,8 @@
 import time
 
 import esther_jax
-from esther_jax.eval import studies
-from fitting import validation
+from esther_jax import studies
+from esther_jax.studies import teacher_validation as validation
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
 

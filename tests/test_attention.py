@@ -14,7 +14,7 @@ import pytest
 
 from esther_jax import model as M
 from esther_jax.crops import patch_centres
-from esther_jax.eval import attention as A
+from esther_jax.studies import attention as A
 from esther_jax.eval import reports
 from esther_jax.mano import KEYPOINT_PARENTS
 from esther_jax.model._layers import _apply_rope, grid_rope

@@ -11,7 +11,7 @@ import pytest
 
 from esther_jax import clips, train
 from esther_jax.cameras import StereoRig
-from fitting.baselines import mean_joint_depth, triangulation_baseline
+from esther_jax.studies.baselines import mean_joint_depth, triangulation_baseline
 from esther_jax.train.validation import score_predictions
 
 FRAMES, CROP = 16, 64

@@ -1,4 +1,4 @@
-"""The studies: their statistics (`eval.studies`) and every notebook executed at the smoke
+"""The studies: their statistics (`esther_jax.studies`) and every notebook executed at the smoke
 scale (as a script in this process, sharing one study root, so the networks they compare
 are trained once), one of them also through a Jupyter kernel."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from esther_jax import metrics
-from esther_jax.eval import studies
+from esther_jax import studies
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.py"))
 REPORT_KEYS = {"study", "scale", "command", "seconds", "git_revision", "verdict", "results"}

@@ -1,4 +1,4 @@
-"""The teacher's validation runner (fitting.validation) at the smallest scale: one clip of
+"""The teacher's validation runner (studies.teacher_validation) at the smallest scale: one clip of
 16 frames (the teacher's 32-frame bucket, shared with tests/test_fitting.py through the
 persistent compilation cache) under two detector presets of the test-set rig."""
 
@@ -9,7 +9,7 @@ import pytest
 
 import fitting
 from esther_jax import clips
-from fitting import validation
+from esther_jax.studies import teacher_validation as validation
 
 CONDITIONS = (("esther_mocap", "default"), ("esther_mocap", "clean"))
 FRAMES = 16

@@ -63,7 +63,7 @@ def _targets(hand) -> train.Targets:
 def _perfect_output(hand, clip, targets) -> ESTHEROutput:
     """An output equal to the targets, with neutral logits (hand-computable losses)."""
     G, B = CFG.grid, CFG.depth_bins
-    uv, _, _ = train.crop_projections(clip, targets.joints, S)
+    uv, _, _ = M.crop_projections(clip, targets.joints, S)
     local = axis_angle_to_matrix(jnp.concatenate([targets.global_orient[:, None], targets.hand_pose], axis=1))
     params = jax.vmap(lambda o, p, t: mano.ManoParams(o, p, targets.betas, t))(targets.global_orient, targets.hand_pose, targets.transl)
     vertices = jax.vmap(lambda R, t: mano.forward_rotations(hand, R, targets.betas, t).vertices)(local, targets.transl)
@@ -95,7 +95,7 @@ def test_each_loss_term_equals_its_hand_computed_value(hand):
     clip, targets = _clip(), _targets(hand)
     perfect = _perfect_output(hand, clip, targets)
     _, means = _means(perfect, clip, targets, hand)
-    uv, depth, inside = train.crop_projections(clip, targets.joints, S)
+    uv, depth, inside = M.crop_projections(clip, targets.joints, S)
     assert bool(jnp.all(inside)), "the test hand must project into both crops"
     for name in ("two_d", "triangulation", "joints", "canonical", "vertices", "six_d", "betas", "transl"):
         assert float(means[name]) == pytest.approx(0.0, abs=2e-6), name
@@ -320,7 +320,7 @@ def test_windows_load_as_network_inputs_with_consistent_targets(synth_clip, tmp_
         absent = ~np.asarray(clip.view_present)
         assert np.all(np.asarray(clip.images)[absent] == 0.0)  # an absent view is never a real view
         # the targets project where the crops show the hand, also for mirrored left hands
-        uv, _, inside = train.crop_projections(clip, targets.joints, S)
+        uv, _, inside = M.crop_projections(clip, targets.joints, S)
         seen = np.asarray(inside) & np.asarray(clip.view_present)[..., None] & np.asarray(targets.valid)[:, None, None]
         assert seen.mean() > 0.3, window
         shown = np.asarray(clip.images)[~absent]
@@ -505,7 +505,7 @@ def test_validation_scores_known_errors(synth_clip):
     windows = train.build_index([synth_clip], data_cfg)
     clip, targets = jax.tree.map(lambda *x: jnp.stack(x), *[train.load_example(w, data_cfg) for w in windows])
     shift = jnp.asarray([0.006, 0.0, -0.008])
-    uv = jax.vmap(lambda c, j: train.crop_projections(c, j, 64)[0])(clip, targets.joints)
+    uv = jax.vmap(lambda c, j: M.crop_projections(c, j, 64)[0])(clip, targets.joints)
     fps = jnp.full((len(windows),), 30.0)
     per_window, gate = validation.score_windows(targets.joints + shift[None, None, None], jnp.ones(targets.valid.shape, bool),
                                                 uv + jnp.asarray([3.0, 4.0])[None, None, None, None], clip, targets, fps, 64)  # fmt: skip

@@ -17,9 +17,9 @@ zero with all flags 0. Computed online, frame by frame.
 import cv2
 import numpy as np
 
-GRID = 8
+from ..clips import FLOW_GRID, FLOW_TOKEN_SIZE
+
 NORMALISER_PX = 224.0
-TOKEN_SIZE = 3 * GRID * GRID
 
 _dis = None
 
@@ -60,17 +60,17 @@ def flow_token(
     vc = ones if valid_current is None else valid_current.astype(np.float32)
     warped_valid = cv2.warpPerspective(vp, H, (size, size), flags=cv2.INTER_NEAREST, borderValue=0.0)
     valid = (warped_valid > 0.5) & (vc > 0.5)
-    cell = size // GRID
-    cells = flow[: cell * GRID, : cell * GRID].reshape(GRID, cell, GRID, cell, 2).transpose(0, 2, 1, 3, 4).reshape(GRID, GRID, -1, 2)
+    cell = size // FLOW_GRID
+    cells = flow[: cell * FLOW_GRID, : cell * FLOW_GRID].reshape(FLOW_GRID, cell, FLOW_GRID, cell, 2).transpose(0, 2, 1, 3, 4).reshape(FLOW_GRID, FLOW_GRID, -1, 2)
     pooled = np.median(cells, axis=2)
-    in_frame = valid[: cell * GRID, : cell * GRID].reshape(GRID, cell, GRID, cell).mean(axis=(1, 3)) > 0.5
+    in_frame = valid[: cell * FLOW_GRID, : cell * FLOW_GRID].reshape(FLOW_GRID, cell, FLOW_GRID, cell).mean(axis=(1, 3)) > 0.5
     pooled = np.where(in_frame[..., None], pooled, 0.0)
     return np.concatenate([(pooled / NORMALISER_PX).reshape(-1), in_frame.reshape(-1).astype(np.float32)]).astype(np.float32)
 
 
 def clip_flow_tokens(crops: np.ndarray, K: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """(T, 192) tokens of a crop sequence (T, S, S[, 3]) with intrinsics (T, 3, 3)."""
-    tokens = np.zeros((len(crops), TOKEN_SIZE), np.float32)
+    tokens = np.zeros((len(crops), FLOW_TOKEN_SIZE), np.float32)
     for t in range(1, len(crops)):
         tokens[t] = flow_token(
             crops[t - 1], crops[t], K[t - 1], K[t], None if valid is None else valid[t - 1], None if valid is None else valid[t]

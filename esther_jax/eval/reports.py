@@ -4,22 +4,13 @@ import csv
 import dataclasses
 import pathlib
 
-import matplotlib
-from matplotlib.figure import Figure
 import numpy as np
 from jaxtyping import Array, Bool, Float, Shaped
 
+from ..figures import figure, save_figure
 from ..files import atomic_output
-from ..metrics import Bootstrap, DepthScatter
+from ..metrics import METRIC_LABELS, Bootstrap, DepthScatter
 
-METRIC_LABELS = {
-    "p_mpjpe": ("P-MPJPE", "mm"),
-    "pa_mpjpe": ("PA-MPJPE", "mm"),
-    "wrist": ("Wrist", "mm"),
-    "jitter": ("Jitter", "m/s^2"),
-    "mpjpe": ("MPJPE", "mm"),
-    "gt_jitter": ("GT jitter", "m/s^2"),
-}
 PAPER_COLUMNS = ("p_mpjpe", "pa_mpjpe", "wrist", "jitter")
 
 
@@ -78,19 +69,6 @@ def markdown_table(records: list[Record], columns: tuple[str, ...] = PAPER_COLUM
     return "\n".join(lines) + "\n"
 
 
-def _subplots(*grid: int, **kwargs):
-    """A figure and its axes on its own canvas (`matplotlib.figure.Figure`, not pyplot): the
-    library never selects matplotlib's backend nor keeps figures in pyplot's registry."""
-    fig = Figure(figsize=kwargs.pop("figsize"))
-    return fig, fig.subplots(*grid, **kwargs)
-
-
-def _save(fig: Figure, path: pathlib.Path) -> pathlib.Path:
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    return path
-
-
 def plot_depth_scatter(z_gt: np.ndarray, z_pred: np.ndarray, scatter: DepthScatter, path: str | pathlib.Path, title: str = "") -> pathlib.Path:
     """Predicted vs true wrist depth with the linear fit, as the paper's figure 8."""
     return plot_depth_scatters([(title, z_gt, z_pred, scatter)], path)
@@ -99,7 +77,7 @@ def plot_depth_scatter(z_gt: np.ndarray, z_pred: np.ndarray, scatter: DepthScatt
 def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthScatter]], path: str | pathlib.Path) -> pathlib.Path:
     """Figure 8 side by side: one panel (title, true depth, predicted depth (m), its
     `metrics.depth_scatter`) per model, on shared axes."""
-    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    fig, axes = figure(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
     everything = np.concatenate([np.concatenate([np.ravel(z_gt), np.ravel(z_pred)]) for _, z_gt, z_pred, _ in panels])
     everything = everything[np.isfinite(everything)]
     lo, hi = (float(everything.min()), float(everything.max())) if everything.size else (0.0, 1.0)
@@ -123,7 +101,7 @@ def plot_depth_scatters(panels: list[tuple[str, np.ndarray, np.ndarray, DepthSca
         )
         ax.legend(fontsize=8, loc="upper left")
     axes[0][0].set_ylabel("predicted wrist depth (m)")
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)
 
 
 def plot_metric_vs_condition(
@@ -132,7 +110,7 @@ def plot_metric_vs_condition(
     """One line per method of a metric across ordered conditions (e.g. error vs dropped
     frames), with bootstrap 95% intervals as error bars."""
     crowded = sum(len(c) for c in conditions) > 40  # long names (e.g. table 5's rows) would overlap on the axis
-    fig, ax = _subplots(figsize=(max(4.6, 0.55 * len(conditions)), 4.6 if crowded else 3.4))
+    fig, ax = figure(figsize=(max(4.6, 0.55 * len(conditions)), 4.6 if crowded else 3.4))
     for method in dict.fromkeys(r.method for r in records):
         pts = [next((r for r in records if r.method == method and r.metric == metric and r.condition == c), None) for c in conditions]
         y = np.asarray([p.value if p else np.nan for p in pts])
@@ -144,51 +122,18 @@ def plot_metric_vs_condition(
     ax.set_xlabel(xlabel)
     ax.set_ylabel(f"{label} ({unit})")
     ax.legend(fontsize=8)
-    return _save(fig, pathlib.Path(path))
-
-
-def plot_learning_curves(steps: list[dict], validation: list[dict], path: str | pathlib.Path) -> pathlib.Path:
-    """A training run's curves: every logged loss term (`loss/<term>`, moving median over
-    about 2 % of the run, log scale) against the step, and beside it the validation
-    P-MPJPE and wrist error (mm) per condition (`views`) when there is any."""
-    panels = 2 if validation else 1
-    fig, axes = _subplots(1, panels, figsize=(5.2 * panels, 3.8), squeeze=False)
-    ax = axes[0, 0]
-    ax.set_prop_cycle(color=matplotlib.colormaps["tab20"].colors)
-    x = np.asarray([row["step"] for row in steps])
-    width = max(len(steps) // 50, 1)
-    for key in ["loss"] + sorted(k for k in (steps[0] if steps else {}) if k.startswith("loss/")):
-        y = np.asarray([row.get(key) if row.get(key) is not None else np.nan for row in steps], float)
-        if not np.any(y > 0):
-            continue
-        smooth = np.asarray([np.nanmedian(y[max(0, i - width + 1) : i + 1]) for i in range(len(y))])
-        ax.plot(x, smooth, lw=2.0 if key == "loss" else 0.9, color="k" if key == "loss" else None, label=key.split("/")[-1])
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss (moving median)")
-    ax.legend(fontsize=6, ncol=2)
-    if validation:
-        ax = axes[0, 1]
-        for views in dict.fromkeys(row["views"] for row in validation):
-            rows = [row for row in validation if row["views"] == views]
-            for metric, style in (("p_mpjpe_mm", "-o"), ("wrist_mm", "--s")):
-                ax.plot([r["step"] for r in rows], [r.get(metric) if r.get(metric) is not None else np.nan for r in rows], style, ms=3,
-                        label=f"{METRIC_LABELS[metric[:-3]][0]}, {views}")  # fmt: skip
-        ax.set_xlabel("step")
-        ax.set_ylabel("validation error (mm)")
-        ax.legend(fontsize=7)
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)
 
 
 def plot_pck(thresholds_m: np.ndarray, curve: np.ndarray, path: str | pathlib.Path, label: str = "") -> pathlib.Path:
-    fig, ax = _subplots(figsize=(4.2, 3.2))
+    fig, ax = figure(figsize=(4.2, 3.2))
     ax.plot(np.asarray(thresholds_m) * 1000, curve, label=label or None)
     ax.set_xlabel("threshold (mm)")
     ax.set_ylabel("PCK")
     ax.set_ylim(0, 1)
     if label:
         ax.legend(fontsize=8)
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)
 
 
 def plot_intervals(
@@ -205,7 +150,7 @@ def plot_intervals(
     """One interval per category (a bar from `lower` to `upper`, a dashed line on to
     `outer` where given) and, per series of `points`, one marker per category: e.g.
     measured errors against the band they should fall in. NaN values are left out."""
-    fig, ax = _subplots(figsize=(max(3.6, 1.1 * len(names) + 1.5), 3.6))
+    fig, ax = figure(figsize=(max(3.6, 1.1 * len(names) + 1.5), 3.6))
     x = np.arange(len(names), dtype=float)
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     ax.bar(x, hi - lo, bottom=lo, width=0.5, color="#cbd5e0", edgecolor="#718096", label="interval")
@@ -223,7 +168,7 @@ def plot_intervals(
     if title:
         ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)
 
 
 def plot_attention_shares(
@@ -234,10 +179,10 @@ def plot_attention_shares(
 ) -> pathlib.Path:
     """The share (0 to 1) of the cross-attention into the kept view that lands on the
     hand, across the stereo blocks L1..Ln: one line per model
-    (`eval.attention.HandAttention.share`, e.g. stereo, view-mask, pure-monocular) and,
+    (`studies.attention.HandAttention.share`, e.g. stereo, view-mask, pure-monocular) and,
     dotted in its colour, the share uniform attention would give (its `chance`), as the
     paper's size-depth binding study (figure 7)."""
-    fig, ax = _subplots(figsize=(4.6, 3.4))
+    fig, ax = figure(figsize=(4.6, 3.4))
     layers = max(len(np.atleast_1d(s)) for s in shares.values())
     for i, (name, share) in enumerate(shares.items()):
         y = np.asarray(share, float)
@@ -250,7 +195,7 @@ def plot_attention_shares(
     ax.set_ylabel("attention on hand patches (share)")
     ax.set_title(f"{title}\ndotted: uniform attention" if title else "dotted: uniform attention", fontsize=9)
     ax.legend(fontsize=8)
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)
 
 
 def plot_attention_maps(
@@ -267,9 +212,9 @@ def plot_attention_maps(
         crop_image: the kept view's crop, (S, S, 3) RGB or (S, S) gray, in [0, 1] or uint8
             (a `ClipInput` crop is channels first: move the axis).
         maps: per model, a (layers, grid, grid) map over the crop's patches
-            (`eval.attention.attention_map` of one frame, rows = v: the share of the
+            (`studies.attention.attention_map` of one frame, rows = v: the share of the
             attention on each patch); the colour scale is shared by all panels.
-        hand_mask: optional (grid, grid) hand patches (`eval.attention.hand_patch_mask`),
+        hand_mask: optional (grid, grid) hand patches (`studies.attention.hand_patch_mask`),
             outlined in white.
     """
     image = np.asarray(crop_image)
@@ -281,7 +226,7 @@ def plot_attention_maps(
     if hand_mask is not None and 0 < np.sum(hand_mask) < np.size(hand_mask):  # some and not all: a boundary to draw
         outline = np.asarray(hand_mask, float)
         centres = (np.arange(outline.shape[0]) + 0.5) * size / outline.shape[0] - 0.5  # patch centres (px)
-    fig, axes = _subplots(len(maps), layers, figsize=(2.0 * layers, 2.0 * len(maps)), squeeze=False)
+    fig, axes = figure(len(maps), layers, figsize=(2.0 * layers, 2.0 * len(maps)), squeeze=False)
     for row, (name, per_layer) in enumerate(maps.items()):
         for col in range(layers):
             ax = axes[row, col]
@@ -299,4 +244,4 @@ def plot_attention_maps(
                 ax.set_ylabel(name, fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
-    return _save(fig, pathlib.Path(path))
+    return save_figure(fig, path)

@@ -3,6 +3,7 @@
 Public names: `ESTHER`, `ModelConfig`, `config`, `CONFIGS`, `ABLATIONS`, `BACKBONES`,
 `parameter_counts`, `ClipInput`, `ESTHEROutput`, `HandPrediction`, `predict`, `gated`,
 `cast` (mixed precision), `mirror_clip`, `unmirror`, `trainable`, `extract_features`, `clip_input_from_crops`,
+`crop_projections` (rig-frame joints -> crop pixels, depths and in-crop flags),
 `cross_view_attention` (the stereo blocks' cross-view attention probabilities), `save`, `load`,
 the backbones (`ViT`, `ConvStem`, `make_backbone`, `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
 `MotionEncoder`, `FusionDecoder`) and their outputs (`ImageEvidence`,
@@ -28,6 +29,7 @@ from .esther import gated as gated
 from .esther import ESTHEROutput as ESTHEROutput
 from .esther import HandPrediction as HandPrediction
 from .esther import clip_input_from_crops as clip_input_from_crops
+from .esther import crop_projections as crop_projections
 from .esther import extract_features as extract_features
 from .esther import ARCHITECTURE_REVISION as ARCHITECTURE_REVISION
 from .esther import REVISION_KEY as REVISION_KEY

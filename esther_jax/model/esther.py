@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ..files import file_sha256, read_json
-from ..crops import resize_crops
+from ..crops import crop_poses, resize_crops
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
 from ._layers import broadcasting
@@ -56,6 +56,28 @@ class ClipInput(eqx.Module):
     """Camera-motion flow token per frame (appendix D; computed on the left view)."""
     view_present: Bool[Array, "*batch T 2"]
     """False where a view is missing or blanked: it is replaced by the view-mask token."""
+
+
+_CROP_NEAR_M = 1e-3
+"""Metres: a joint nearer to a crop camera than this (or behind it) projects nowhere in its
+crop (its pixel is not used, and it is not inside the crop)."""
+
+
+def crop_projections(
+    clip: ClipInput, joints: Float[Array, "T 21 3"], crop_size: int
+) -> tuple[Float[Array, "T 2 21 2"], Float[Array, "T 2 21"], Bool[Array, "T 2 21"]]:
+    """Pixels (crop pixel centres) and depths (m) of rig-frame joints in each view's crop
+    camera, and whether each projects inside its S x S crop in front of the camera (the
+    in-frame projection validity the visibility head learns)."""
+    T_rig_crop = crop_poses(jnp.asarray(clip.R_cam_crop, jnp.float32), jnp.asarray(clip.T_rig_cams, jnp.float32))
+    R, t = T_rig_crop[..., :3, :3], T_rig_crop[..., :3, 3]  # (T, 2, 3, 3), (T, 2, 3)
+    X = jnp.einsum("tvji,tvnj->tvni", R, joints[:, None, :, :] - t[:, :, None, :])  # crop-camera frame
+    z = X[..., 2]
+    zs = jnp.where(z > _CROP_NEAR_M, z, 1.0)
+    K = jnp.asarray(clip.K, jnp.float32)
+    uv = jnp.einsum("tvij,tvnj->tvni", K[..., :2, :2], X[..., :2] / zs[..., None]) + K[:, :, None, :2, 2]
+    inside = jnp.all((uv >= -0.5) & (uv < crop_size - 0.5), axis=-1) & (z > _CROP_NEAR_M)
+    return uv, z, inside
 
 
 class ESTHEROutput(eqx.Module):

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ..data.flow import TOKEN_SIZE
+from ..clips import FLOW_TOKEN_SIZE
 from ._layers import Block, Dense, LayerNorm, _trunc_normal, broadcasting
 from .config import ModelConfig
 from .stereo_encoder import NUM_KEYPOINTS
@@ -66,7 +66,7 @@ class MotionEncoder(eqx.Module):
         self.joint_embed = _trunc_normal(keys[1], (NUM_KEYPOINTS, d))
         self.time_embed = _trunc_normal(keys[2], (cfg.num_frames, d))
         self.root_token = _trunc_normal(keys[3], (d,))
-        self.flow_embed = Dense(TOKEN_SIZE, d, key=keys[4]) if cfg.flow_token else None
+        self.flow_embed = Dense(FLOW_TOKEN_SIZE, d, key=keys[4]) if cfg.flow_token else None
         self.blocks = tuple(
             Block(d, cfg.heads, key=k, mlp_ratio=cfg.mlp_ratio) for k in jax.random.split(keys[5], cfg.temporal_layers)
         )

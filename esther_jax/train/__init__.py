@@ -23,7 +23,6 @@ from .losses import Targets as Targets
 from .losses import Term as Term
 from .losses import clip_loss_terms as clip_loss_terms
 from .losses import combine as combine
-from .losses import crop_projections as crop_projections
 from .losses import onscreen_label as onscreen_label
 from .masking import AugmentRates as AugmentRates
 from .masking import MaskingRates as MaskingRates

@@ -42,7 +42,7 @@ import optax
 
 from .. import mano
 from .. import model as M
-from ..eval.reports import plot_learning_curves
+from .curves import plot_learning_curves
 from ..files import atomic_output, exclusive_lock, file_sha256, git_revision, read_json, write_json
 from . import data as data_lib
 from .losses import STAGES, LossWeights, clip_loss_terms, combine

@@ -60,16 +60,13 @@ from jaxtyping import Array, Bool, Float
 
 from .. import mano
 from .._math import safe_norm
-from ..crops import crop_poses, patch_centres
+from ..crops import patch_centres
 from ..model.config import ModelConfig
-from ..model.esther import ClipInput, ESTHEROutput
+from ..model.esther import ClipInput, ESTHEROutput, crop_projections
 from ..model.stereo_encoder import depth_bin_centres
 from ..rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_rotation_6d
 
 STAGES = ("image", "joint")
-_CROP_NEAR_M = 1e-3
-"""Metres: a joint nearer to a crop camera than this (or behind it) projects nowhere in its
-crop (its pixel is not used, and it is not inside the crop)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,23 +139,6 @@ def _bce_with_logits(logits: Array, labels: Array) -> Array:
 def _masked_mean(values: Array, mask: Array) -> Array:
     t = _term(values, mask)
     return t.total / jnp.maximum(t.count, 1.0)
-
-
-def crop_projections(
-    clip: ClipInput, joints: Float[Array, "T 21 3"], crop_size: int
-) -> tuple[Float[Array, "T 2 21 2"], Float[Array, "T 2 21"], Bool[Array, "T 2 21"]]:
-    """Pixels (crop pixel centres) and depths (m) of rig-frame joints in each view's crop
-    camera, and whether each projects inside its S x S crop in front of the camera (the
-    in-frame projection validity the visibility head learns)."""
-    T_rig_crop = crop_poses(jnp.asarray(clip.R_cam_crop, jnp.float32), jnp.asarray(clip.T_rig_cams, jnp.float32))
-    R, t = T_rig_crop[..., :3, :3], T_rig_crop[..., :3, 3]  # (T, 2, 3, 3), (T, 2, 3)
-    X = jnp.einsum("tvji,tvnj->tvni", R, joints[:, None, :, :] - t[:, :, None, :])  # crop-camera frame
-    z = X[..., 2]
-    zs = jnp.where(z > _CROP_NEAR_M, z, 1.0)
-    K = jnp.asarray(clip.K, jnp.float32)
-    uv = jnp.einsum("tvij,tvnj->tvni", K[..., :2, :2], X[..., :2] / zs[..., None]) + K[:, :, None, :2, 2]
-    inside = jnp.all((uv >= -0.5) & (uv < crop_size - 0.5), axis=-1) & (z > _CROP_NEAR_M)
-    return uv, z, inside
 
 
 def onscreen_label(targets: Targets, visible: Bool[Array, "T 2 21"]) -> Bool[Array, "T"]:
@@ -287,4 +267,4 @@ def combine(terms: dict[str, Term], cfg: ModelConfig, stage: str, weights: LossW
     return loss, means
 
 
-__all__ = ["LossWeights", "STAGES", "STAGE_TERMS", "Targets", "Term", "clip_loss_terms", "combine", "crop_projections", "onscreen_label"]
+__all__ = ["LossWeights", "STAGES", "STAGE_TERMS", "Targets", "Term", "clip_loss_terms", "combine", "onscreen_label"]

@@ -22,7 +22,7 @@ window's targets:
 with `DataConfig.stride == frames` for non-overlapping held-out windows.
 
 `score_predictions` is that scoring for any per-window predictions (a baseline's, e.g.
-`fitting.baselines.triangulation_baseline`); `evaluate_windows` predicts, then calls it.
+`studies.baselines.triangulation_baseline`); `evaluate_windows` predicts, then calls it.
 """
 
 import equinox as eqx
@@ -34,9 +34,9 @@ from jaxtyping import Array, Bool, Float
 from .. import clips as clip_format
 from .. import mano, metrics
 from ..eval.protocols import corrupt_clip, frame_drop_mask
-from ..model.esther import ESTHER, ClipInput, gated
+from ..model.esther import ESTHER, ClipInput, crop_projections, gated
 from .data import DataConfig, Window, load_example
-from .losses import Targets, crop_projections, onscreen_label
+from .losses import Targets, onscreen_label
 
 VALIDATION_METRICS = ("mpjpe_mm", "p_mpjpe_mm", "pa_mpjpe_mm", "wrist_mm", "keypoints_2d_px", "jitter", "gt_jitter", "onscreen_precision", "onscreen_recall", "onscreen_f1")
 

@@ -30,8 +30,8 @@ original right camera is the view 0 dropped.
 
 `mean_joint_depth` is the prior: the training windows' mean joint depth.
 
-It lives with the teacher (whose fusion and triangulation it is) and is imported on its
-own, `fitting.baselines`: it reads training windows (`esther_jax.train`).
+It is a study's machinery (`esther_jax.studies`): it uses the teacher's fusion
+(`fitting`) and reads training windows (`esther_jax.train`).
 """
 
 import functools
@@ -43,15 +43,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from esther_jax import clips
-from esther_jax.cameras import StereoRig, apply_transform
-from esther_jax.eval.protocols import drop_view_keypoints
-from esther_jax.model.esther import ClipInput
-from esther_jax.train.data import DataConfig, Window, load_example, mirror_targets
-from esther_jax.train.losses import Targets, crop_projections
-from esther_jax.triangulation import triangulate_rig
+from fitting import fuse
 
-from .fusion import fuse
+from .. import clips
+from ..cameras import StereoRig, apply_transform
+from ..eval.protocols import drop_view_keypoints
+from ..model import ClipInput, crop_projections
+from ..train.data import DataConfig, Window, load_example, mirror_targets
+from ..train.losses import Targets
+from ..triangulation import triangulate_rig
 
 
 @functools.lru_cache(maxsize=64)

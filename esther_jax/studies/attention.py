@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..crops import patch_centres
 from ..mano import KEYPOINT_PARENTS
-from ..model import ClipInput
+from ..model import ClipInput, crop_projections
 
 _BONES = tuple((child, parent) for child, parent in enumerate(KEYPOINT_PARENTS) if parent >= 0)
 _MIN_DEPTH_M = 0.01
@@ -57,9 +57,6 @@ def hand_patch_mask(
         True for hand patches, per frame and view, over the grid x grid patch tiling
         (`crops.patch_centres`; flattened row-major, the patch order of the tokens).
     """
-    # esther_jax.train imports esther_jax.eval: the training code's projection is imported on use
-    from ..train.losses import crop_projections
-
     if radius <= 0:
         raise ValueError(f"radius is in patch sides and must be positive; got {radius}")
     uv, depth, _ = crop_projections(clip, joints, crop_size)  # (T, 2, 21, 2) crop pixels, (T, 2, 21) metres

@@ -61,19 +61,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from esther_jax import cameras, clips, mano, metrics
-from esther_jax.cameras import StereoRig
-from esther_jax.data import SynthConfig, synthesize
-from esther_jax.data.detector import PRESETS as DETECTOR_PRESETS
-from esther_jax.data.motion import MotionConfig
-from esther_jax.eval import evaluate_folders, reports
-from esther_jax.files import atomic_output, check_out_dir, write_json
+from fitting import LabelConfig, frame_quality, fuse, label_clips, label_quality, prefilter, reprojection_filter, template_bones
+from fitting.pipeline import far_outside_image
 
-from .evidence import prefilter, template_bones
-from .fusion import fuse
-from .label import label_clips
-from .pipeline import LabelConfig, far_outside_image
-from .quality import frame_quality, label_quality, reprojection_filter
+from .. import cameras, clips, mano, metrics
+from ..cameras import StereoRig
+from ..data import SynthConfig, synthesize
+from ..data.detector import PRESETS as DETECTOR_PRESETS
+from ..data.motion import MotionConfig
+from ..eval import evaluate_folders, reports
+from ..figures import figure, save_figure
+from ..files import check_out_dir, write_json
 
 RIGS = ("esther_mocap", "hot3d_quest3", "hot3d_aria")
 """The paper's test-set rig (parallel pinhole, 62 mm), Quest 3 (nearly parallel fisheye,
@@ -495,7 +493,7 @@ def plot_band_check(results: list[dict], path: str | pathlib.Path, source: str =
         [nan(b["upper_mm"]) for b in bands],
         path,
         outer=[nan(b["worst_mm"]) for b in bands],
-        points={reports.METRIC_LABELS[m][0]: [nan(b["metrics"][m]["measured_mm"]) for b in bands] for m in BAND_METRICS},
+        points={metrics.METRIC_LABELS[m][0]: [nan(b["metrics"][m]["measured_mm"]) for b in bands] for m in BAND_METRICS},
         ylabel="error (mm)",
         title=f"measured error vs admissible band ({source}, {bands[0]['statistic'] if bands else 'median'})",
     )
@@ -505,13 +503,10 @@ def plot_error_vs_depth(results: list[dict], path: str | pathlib.Path, source: s
     """Per condition, every scored hand-frame's wrist error and P-MPJPE against its
     depth, with its own band of `source` (a vertical line from the in-plane error to the
     admissible depth error)."""
-    from matplotlib.figure import Figure  # its own canvas: pyplot's backend and registry untouched
-
     prefix = BAND_SOURCES[source]
     cols = min(len(results), 3)
     rows = -(-len(results) // cols)
-    fig = Figure(figsize=(4.2 * cols, 3.4 * rows))
-    axes = fig.subplots(rows, cols, squeeze=False)
+    fig, axes = figure(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     for ax, r in zip(axes.flat, results):
         f = r["frames"]
         ok = f["scored"] & np.isfinite(f["wrist_mm"]) & np.isfinite(f[prefix + "in_plane_error_mm"])
@@ -526,7 +521,4 @@ def plot_error_vs_depth(results: list[dict], path: str | pathlib.Path, source: s
     for ax in list(axes.flat)[len(results) :]:
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=7)
-    path = pathlib.Path(path)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    return path
+    return save_figure(fig, path)

@@ -1,6 +1,13 @@
 """The paper's studies as library runners: data, trained models, conditions, statistics
 and reports. The notebooks under `notebooks/` are thin scripts over these functions.
 
+The package stands above every other (the apps' floor, beside the CLI and the demo): a
+study trains (`esther_jax.train`), labels (`fitting`), synthesizes (`esther_jax.data`)
+and scores (`esther_jax.eval`), and nothing below imports it. Its modules beside the
+runners here: `attention` (the cross-view attention probe of figure 7), `baselines`
+(the triangulation baseline of table 2) and `teacher_validation` (the teacher against
+exact ground truth, appendices I and N).
+
 - **Scale** (`StudyScale`, `scale_from_env`): `smoke` (untrained `cpu-tiny` networks on
   a few tiny clips: every study's pipeline and report in seconds, what the tests execute;
   training itself is tested with `esther_jax.train`) or `full` (`cpu-small`, the two
@@ -46,8 +53,8 @@ from .. import metrics
 from .. import model as M
 from ..clips import list_clips
 from ..data import motion, synth
+from ..eval.reports import Record
 from ..files import atomic_output, git_revision, read_json, strict_json, write_json
-from .reports import Record
 from ..train import data as data_lib
 from ..train import train_stages
 from ..train.validation import drop_view, evaluate_windows, predict_windows, score_predictions
@@ -394,7 +401,7 @@ def attention_shares(
 ) -> tuple[dict, dict]:
     """Figure 7: per stereo block, the share of the cross-view attention into the kept
     view (view 0; drop view 1 for the view-mask model, the monocular model removes it
-    itself) that lands on the hand's patches (`eval.attention`), pooled over the frames
+    itself) that lands on the hand's patches (`studies.attention`), pooled over the frames
     of `windows` with hand patches, beside the uniform-attention share. Returns the
     result ({share: [layers], chance, frames}) and, for the figure, the first window's
     crop of the kept view, its hand mask and the attention maps of its middle frame."""
