@@ -236,11 +236,11 @@ def _label_scores(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path) -> d
             path = clips.hand_file(labels_root / clip.name, side, "labels")
             if not path.is_file():
                 continue
-            labels = clips.load_npz(path, "labels")
-            ok = labels["valid"] & gt["onscreen"]
+            labels = clips.Labels.from_npz(path)
+            ok = np.asarray(labels.valid) & gt["onscreen"]
             labelled += int(ok.sum())
             if ok.any():
-                pred, true = jnp.asarray(labels["joints"][ok]), jnp.asarray(gt["joints"][ok])
+                pred, true = labels.joints[ok], jnp.asarray(gt["joints"][ok])
                 p += list(np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true)) * 1000)
                 w += list(np.asarray(jax.vmap(metrics.wrist_error)(pred, true)) * 1000)
     return {"coverage": labelled / max(onscreen, 1), "p_mpjpe_mm": float(np.mean(p)) if p else None,

@@ -21,7 +21,7 @@ side by side, with the public `fitting` API only.
 2. Rig sweep: esther, hot3d_quest3, hot3d_aria; N clips of F frames (default detector
    preset, both hands), the default `LabelConfig`. Coverage (valid and on screen over on
    screen, on screen from the ground truth), P-MPJPE, PA-MPJPE and wrist error (mm, over
-   valid on-screen frames) for stereo frames, monocular frames (`labels["stereo"]`) and
+   valid on-screen frames) for stereo frames, monocular frames (`labels.stereo`) and
    all; hand-frames/s without the first (compiling) call of each rig. Targets: esther
    P-MPJPE <= 4 mm, wrist <= 5 mm and >= 200 hand-frames/s; hot3d_aria >= 80 % of the
    on-screen hand-frames labelled, with P-MPJPE <= 15 mm and wrist <= 25 mm (read two
@@ -61,7 +61,7 @@ from _timing import machine  # noqa: E402
 
 import esther_jax  # noqa: E402
 import fitting  # noqa: E402
-from esther_jax import cameras, compilation, mano, metrics  # noqa: E402
+from esther_jax import cameras, clips, compilation, mano, metrics  # noqa: E402
 from esther_jax.data import detector, motion, synth  # noqa: E402
 from fitting import objectives, solve  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
@@ -203,11 +203,11 @@ def child(mode: str, rig_name: str, cache: str, frames: int) -> dict:
     return out
 
 
-def labels_digest(labels: dict) -> str:
-    """A digest of a clip's labels, to tell whether two processes computed the same bits."""
+def labels_digest(labels: clips.Labels) -> str:
+    """A digest of a hand's labels, to tell whether two processes computed the same bits."""
     h = hashlib.sha256()
-    for key in sorted(labels):
-        h.update(key.encode() + np.ascontiguousarray(labels[key]).tobytes())
+    for path, leaf in jax.tree_util.tree_leaves_with_path(labels):
+        h.update(jax.tree_util.keystr(path).encode() + np.ascontiguousarray(leaf).tobytes())
     return h.hexdigest()
 
 
@@ -276,10 +276,10 @@ def _errors(pred, true):
     return {"p_mpjpe": per(metrics.p_mpjpe), "pa_mpjpe": per(metrics.pa_mpjpe), "wrist": per(metrics.wrist_error)}
 
 
-def frame_rows(labels: dict, gt: dict) -> dict:
+def frame_rows(labels: clips.Labels, gt: dict) -> dict:
     """Per-frame errors (mm) and masks of one labelled hand."""
-    err = {k: np.asarray(v) for k, v in _errors(jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])).items()}
-    return dict(err, valid=np.asarray(labels["valid"], bool), onscreen=np.asarray(gt["onscreen"], bool), stereo=np.asarray(labels["stereo"], bool))
+    err = {k: np.asarray(v) for k, v in _errors(labels.joints, jnp.asarray(gt["joints"])).items()}
+    return dict(err, valid=np.asarray(labels.valid, bool), onscreen=np.asarray(gt["onscreen"], bool), stereo=np.asarray(labels.stereo, bool))
 
 
 def pooled(hands: list[dict], group: str) -> dict:

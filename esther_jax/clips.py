@@ -11,7 +11,10 @@
       hands/<side>/monocular.npz         optional per-view monocular MANO (e.g. WiLoR) in each camera's
                                          frame: global_orient [T,2,3], hand_pose [T,2,15,3], transl [T,2,3]
                                          (wrist position), valid [T,2]; the teacher starts from it
-    labels/<clip>/hands/<side>/labels.npz  the gt.npz keys + valid [T], residual_px [T]
+    labels/<clip>/hands/<side>/labels.npz  the gt.npz keys + valid [T], residual_px [T]; optional stereo [T],
+                                         converged [T] (the teacher's), onscreen_prob [T] (the network's)
+
+A hand's labels are one typed value, `Labels` (`Labels.from_npz`, `Labels.to_npz`).
 
 Every loader validates keys, shapes and values and says what is wrong with a file
 (missing, truncated, not an npz, wrong shape, NaN); writers are atomic.
@@ -25,9 +28,14 @@ import zlib
 from collections.abc import Iterable, Iterator
 
 import cv2
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float
 
 from .files import atomic_output, read_json, write_json
+from .mano import ManoParams
 
 SIDES = ("right", "left")
 
@@ -102,6 +110,88 @@ def load_npz(path: str | pathlib.Path, kind: str) -> dict[str, np.ndarray]:
         if key in arrays:
             arrays[key] = arrays[key].astype(bool)
     return arrays
+
+
+_LABEL_EXTRAS = ("stereo", "converged", "onscreen_prob")
+
+
+class Labels(eqx.Module):
+    """One hand's labels over T frames, in the rig frame (metres, radians): what the teacher
+    makes (`fitting.label_hand`), what the network predicts (`esther predict`), what
+    `esther evaluate` scores, the demo draws and the review sheet shows. On disk it is
+    `labels/<clip>/hands/<side>/labels.npz` (`from_npz`, `to_npz`: the gt.npz keys, one
+    `betas [10]` per hand, plus valid, residual_px and the optional extras).
+
+    A pytree of arrays: `jax.vmap` over frames, `jax.tree.map` over fields.
+    """
+
+    params: ManoParams
+    """Per frame: global_orient [T,3], hand_pose [T,15,3], betas [T,10] (the hand's one
+    shape, repeated), transl [T,3] (the wrist)."""
+    joints: Float[Array, "T 21 3"]
+    """The 21 keypoints (docs/architecture.md's order)."""
+    onscreen: Bool[Array, "T"]
+    """The hand is seen (the teacher: detected in some view; the network: emitted)."""
+    valid: Bool[Array, "T"]
+    """The frame's label is emitted (passes the teacher's quality bounds; the network's gate)."""
+    residual_px: Float[Array, "T"]
+    """Reprojection residual against the fused keypoints (pixels); NaN where not observed."""
+    stereo: Bool[Array, "T"] | None = None
+    """The teacher's: both views observed the hand."""
+    converged: Bool[Array, "T"] | None = None
+    """The teacher's: the frame's fit converged."""
+    onscreen_prob: Float[Array, "T"] | None = None
+    """The network's on-screen probability."""
+
+    @property
+    def betas(self) -> Float[Array, "10"]:
+        """The hand's shape coefficients (one per hand)."""
+        return self.params.betas[0]
+
+    def frame(self, t: int | np.integer) -> ManoParams:
+        """The MANO parameters of frame t (one hand: the kinematics' input)."""
+        return jax.tree.map(lambda a: a[t], self.params)
+
+    @classmethod
+    def from_npz(cls, path: str | pathlib.Path) -> "Labels":
+        """Read and validate a labels.npz (`ClipFormatError` naming what is wrong)."""
+        arrays = load_npz(path, "labels")
+        T = arrays["valid"].shape[0]
+        if T == 0:
+            raise ClipFormatError(f"{path}: holds no frame (T = 0)")
+        params = ManoParams(
+            jnp.asarray(arrays["global_orient"]),
+            jnp.asarray(arrays["hand_pose"]),
+            jnp.broadcast_to(jnp.asarray(arrays["betas"]), (T, arrays["betas"].shape[0])),
+            jnp.asarray(arrays["transl"]),
+        )
+        extras = {k: jnp.asarray(arrays[k]) for k in _LABEL_EXTRAS if k in arrays}
+        for key, value in extras.items():
+            if value.shape != (T,):
+                raise ClipFormatError(f"{path}: {key} has shape {value.shape}, expected [{T}]")
+        for key in ("stereo", "converged"):
+            if key in extras:
+                extras[key] = extras[key].astype(bool)
+        return cls(params, jnp.asarray(arrays["joints"]), jnp.asarray(arrays["onscreen"]), jnp.asarray(arrays["valid"]),
+                   jnp.asarray(arrays["residual_px"]), **extras)  # fmt: skip
+
+    def to_npz(self, path: str | pathlib.Path) -> pathlib.Path:
+        """Write the labels.npz atomically (one `betas [10]`: the shape must not vary over frames)."""
+        betas = np.asarray(self.params.betas)
+        if betas.ndim != 2 or betas.shape[0] == 0 or np.any(betas != betas[:1]):
+            raise ValueError(f"labels hold one shape per hand: betas must be [T, 10] equal over frames, got shape {betas.shape}")
+        arrays = {
+            "global_orient": self.params.global_orient,
+            "hand_pose": self.params.hand_pose,
+            "betas": betas[0],
+            "transl": self.params.transl,
+            "joints": self.joints,
+            "onscreen": self.onscreen,
+            "valid": self.valid,
+            "residual_px": self.residual_px,
+        }
+        arrays.update({k: getattr(self, k) for k in _LABEL_EXTRAS if getattr(self, k) is not None})
+        return save_npz(path, **{k: np.asarray(v) for k, v in arrays.items()})
 
 
 CROP_KEYS = ("images", "K", "R_cam_crop", "box", "flow")

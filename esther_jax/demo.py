@@ -16,7 +16,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from . import mano
+from . import clips, mano
 from .data import motion, render, synth
 from .eval import evaluate_folders
 
@@ -60,11 +60,10 @@ def run(out_dir: str | pathlib.Path = "esther_demo", *, seed: int = 0, frames: i
 
     print("4/4 drawing the fitted meshes over both views")
     figure = _overlays(clip, labels_dir / "clip_00000", out / "overlays.png", seed, contact_sheet, overlay_mesh)
-    right_labels = np.load(labels_dir / "clip_00000" / "hands" / "right" / "labels.npz")
+    right_labels = clips.Labels.from_npz(clips.hand_file(labels_dir / "clip_00000", "right", "labels"))
     model = mano.load_builtin("right")
-    t = int(np.flatnonzero(right_labels["valid"])[0]) if right_labels["valid"].any() else 0
-    params = mano.ManoParams(*(jnp.asarray(right_labels[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(right_labels["betas"]), jnp.asarray(right_labels["transl"][t]))
-    mesh = mano.export_mesh(model, mano.forward(model, params), out / "right_hand_fitted.glb")
+    t = int(np.flatnonzero(right_labels.valid)[0]) if right_labels.valid.any() else 0
+    mesh = mano.export_mesh(model, mano.forward(model, right_labels.frame(t)), out / "right_hand_fitted.glb")
     paths = {
         "clip": clip_path,
         "labels": labels_dir,
@@ -85,7 +84,7 @@ def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, num: i
     rig = clip.rig
     scene = render.sample_scene(np.random.default_rng([seed, 99]))
     T_world_rig = np.asarray(clip.meta["T_world_rig"])
-    labels = {side: np.load(labels_path / "hands" / side / "labels.npz") for side in clip.gt}
+    labels = {side: clips.Labels.from_npz(clips.hand_file(labels_path, side, "labels")) for side in clip.gt}
     T = len(T_world_rig)
     frames = np.linspace(T // 8, T - 1 - T // 8, num).astype(int)
     colours = {"right": (236, 112, 150), "left": (90, 150, 240)}  # pink right, blue left (the paper's figures)
@@ -97,8 +96,7 @@ def _overlays(clip, labels_path, path, seed, contact_sheet, overlay_mesh, num: i
             gt = clip.gt[side]
             gt_params = mano.ManoParams(*(jnp.asarray(gt[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(gt["betas"]), jnp.asarray(gt["transl"][t]))
             meshes_gt.append((np.asarray(mano.forward(model, gt_params).vertices, np.float64), np.asarray(model.faces)))
-            params = mano.ManoParams(*(jnp.asarray(lab[k][t]) for k in ("global_orient", "hand_pose")), jnp.asarray(lab["betas"]), jnp.asarray(lab["transl"][t]))
-            fitted.append((side, np.asarray(mano.forward(model, params).vertices, np.float64), np.asarray(model.faces), bool(lab["valid"][t])))
+            fitted.append((side, np.asarray(mano.forward(model, lab.frame(t)).vertices, np.float64), np.asarray(model.faces), bool(lab.valid[t])))
         dtype = jnp.result_type(float)
         gt_views = [(np.asarray(rig.to_views(jnp.asarray(m, dtype)), np.float64), f) for m, f in meshes_gt]  # (2, V, 3) each
         fit_uv = [np.asarray(rig.project(jnp.asarray(verts, dtype)), np.float64) for _, verts, _, _ in fitted]  # (2, V, 2)

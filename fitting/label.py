@@ -16,6 +16,8 @@ import shutil
 import tempfile
 import time
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from esther_jax import clips, mano
@@ -139,15 +141,15 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sourc
         labels, report = results[side]
         record = records[side]
         report["mano_model"] = record
-        rejected = [f for (c, s, f) in rejects if c == clip_dir.name and s == side and f < len(labels["valid"])]
+        rejected = [f for (c, s, f) in rejects if c == clip_dir.name and s == side and f < len(labels.valid)]
         if rejected:
-            labels["valid"][rejected] = False
+            labels = eqx.tree_at(lambda x: x.valid, labels, labels.valid.at[jnp.asarray(rejected)].set(False))
             report["human_rejected_frames"] = sorted(rejected)
-        clips.save_npz(clips.hand_file(tmp, side, "labels"), **labels)
+        labels.to_npz(clips.hand_file(tmp, side, "labels"))
         write_json(tmp / "hands" / side / "quality.json", report)
         summary["hands"][side] = {
-            "frames": len(labels["valid"]),
-            "valid": int(labels["valid"].sum()),
+            "frames": len(labels.valid),
+            "valid": int(labels.valid.sum()),
             "seconds": report["seconds"],
             "notes": report.get("notes", []),
             "mano_model": record,
@@ -260,9 +262,6 @@ def _labelled_with(meta_path: pathlib.Path, wanted: dict[str, str]) -> bool:
 
 def review_clip(clip_dir: str | pathlib.Path, out_dir: str | pathlib.Path) -> list[pathlib.Path]:
     """Write `<out>/<clip>/hands/<side>/review.png` for the flagged frames of each hand."""
-    import jax.numpy as jnp
-
-
     from .fusion import fuse
     from .review import review_sheet
 
@@ -276,7 +275,7 @@ def review_clip(clip_dir: str | pathlib.Path, out_dir: str | pathlib.Path) -> li
         path = clips.hand_file(out_dir / clip_dir.name, side, "labels")
         if not path.is_file():
             continue
-        labels = clips.load_npz(path, "labels")
+        labels = clips.Labels.from_npz(path)
         kp = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
         fused = fuse(*(jnp.asarray(kp[k]) for k in ("uv", "conf", "box", "box_score")))
         sheet = review_sheet(rig, labels, np.asarray(fused.uv), np.asarray(fused.conf), path.with_name("review.png"), images=videos)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esther_jax import mano
+from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
 from esther_jax.compilation import CPU_LIGHT_OPTIMISATION, CPU_QUICK_COMPILE, persistent_jit
 
@@ -187,7 +187,7 @@ def _finish(model, rig, fits, fused, seen, observed, reject_px):
 def label_hand(
     model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, config: LabelConfig = LabelConfig(),
     monocular: dict | None = None, shape: np.ndarray | None = None,
-) -> tuple[dict, dict]:  # fmt: skip
+) -> tuple[clips.Labels, dict]:  # fmt: skip
     """Label one hand of one clip.
 
     Args:
@@ -201,7 +201,7 @@ def label_hand(
             the other hand's); used only when no frame sees this hand in both views,
             in place of the mean shape (one view cannot tell size from distance).
     Returns:
-        (labels, quality): the labels.npz arrays and the quality.json content.
+        (labels, quality): the hand's `clips.Labels` (labels.npz) and the quality.json content.
 
     Calls from several threads take turns on the CPU (`_CPU_TURNS`).
     """
@@ -217,7 +217,7 @@ runs a while loop's iterations on its thread pool and can block a pool thread in
 and wait on each other. So concurrent calls run one after another, as from one thread."""
 
 
-def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[dict, dict]:
+def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[clips.Labels, dict]:
     D, T = check_keypoints(keypoints, fps)
     timings = {}  # seconds per stage, each stage waited for (JAX dispatches asynchronously)
     t0 = time.perf_counter()
@@ -287,25 +287,28 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[d
     return _package(out, T, model, mono_has, config, timings, has_shape)
 
 
-def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelConfig, timings: dict, has_shape: bool) -> tuple[dict, dict]:
+def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelConfig, timings: dict, has_shape: bool) -> tuple[clips.Labels, dict]:
     sl = slice(0, T)
     fits = out["fits"]
     observed, stereo = out["observed"][sl], out["stereo"][sl]
     mono = observed & ~stereo
-    labels = {
-        "global_orient": np.asarray(fits.global_orient[sl], np.float32),
-        "hand_pose": np.asarray(fits.hand_pose[sl], np.float32),
-        "betas": np.asarray(out["betas"], np.float32),
-        "transl": np.asarray(fits.transl[sl], np.float32),
-        "joints": np.asarray(out["joints"][sl], np.float32),
-        "onscreen": np.array(observed),
-        "valid": np.array(out["passing"][sl]),
-        "residual_px": np.asarray(out["residual"][sl], np.float32),  # NaN where the hand is not observed
-        "stereo": np.array(stereo),
-        "converged": np.array(fits.converged[sl]),
-    }
+    betas = jnp.asarray(np.asarray(out["betas"], np.float32))
+    labels = clips.Labels(
+        params=mano.ManoParams(
+            jnp.asarray(np.asarray(fits.global_orient[sl], np.float32)),
+            jnp.asarray(np.asarray(fits.hand_pose[sl], np.float32)),
+            jnp.broadcast_to(betas, (T,) + betas.shape),
+            jnp.asarray(np.asarray(fits.transl[sl], np.float32)),
+        ),
+        joints=jnp.asarray(np.asarray(out["joints"][sl], np.float32)),
+        onscreen=jnp.asarray(observed),
+        valid=jnp.asarray(out["passing"][sl]),
+        residual_px=jnp.asarray(np.asarray(out["residual"][sl], np.float32)),  # NaN where the hand is not observed
+        stereo=jnp.asarray(stereo),
+        converged=jnp.asarray(fits.converged[sl]),
+    )
     per_frame = {k: np.asarray(v[sl]) for k, v in out["per_frame"].items()}
-    report = quality.label_quality(per_frame, observed, stereo, labels["valid"])
+    report = quality.label_quality(per_frame, observed, stereo, np.asarray(labels.valid))
     notes = []
     if out["num_invalid"]:
         notes.append(f"{int(out['num_invalid'])} keypoints had NaN or infinite values but a nonzero confidence and were treated as missing")
@@ -329,7 +332,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
         share_passing=report["all"]["share_passing"] or 0.0,
         shape_from_monocular=bool(out["from_mono"]),
         shape_from_other_hand=bool(out["from_mono"]) and has_shape,
-        converged_share=float(labels["converged"][observed].mean()) if observed.any() else 0.0,
+        converged_share=float(np.asarray(labels.converged)[observed].mean()) if observed.any() else 0.0,
         rejected_joints_depth=int(out["rejected_depth"]),
         rejected_joints_bones=int(out["rejected_bones"]),
         shape_lock_frames=int(out["chosen"][sl].sum()),
@@ -343,7 +346,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
 def label_hands(
     models: dict[str, mano.ManoModel], rig: StereoRig, keypoints: dict[str, dict], fps: float,
     config: LabelConfig = LabelConfig(), monocular: dict[str, dict | None] | None = None, *, share_shape: bool = True,
-) -> dict[str, tuple[dict, dict]]:  # fmt: skip
+) -> dict[str, tuple[clips.Labels, dict]]:  # fmt: skip
     """Label the hands of one clip (`label_hand` per side), the two hands as one person's:
     a hand that no frame sees in both views takes the shape locked on the other hand when
     that one has stereo frames (the hand models must share their shape space, as MANO's
@@ -358,7 +361,7 @@ def label_hands(
     """
     monocular = monocular or {}
 
-    def one(side: str, shape=None, spent: float = 0.0) -> tuple[dict, dict]:
+    def one(side: str, shape=None, spent: float = 0.0) -> tuple[clips.Labels, dict]:
         t0 = time.perf_counter()
         labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape)
         report["seconds"] = spent + time.perf_counter() - t0

@@ -13,6 +13,7 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
+from esther_jax import clips
 from esther_jax.cameras import StereoRig
 from esther_jax.files import atomic_output
 from esther_jax.mano import KEYPOINT_PARENTS
@@ -66,7 +67,7 @@ def contact_sheet(tiles: list[list[np.ndarray]], captions: list[str], path: str 
 
 def review_sheet(
     rig: StereoRig,
-    labels: dict,
+    labels: clips.Labels,
     fused_uv: np.ndarray,
     fused_conf: np.ndarray,
     path: str | pathlib.Path,
@@ -77,21 +78,21 @@ def review_sheet(
     """Contact sheet of flagged (or the given) frames; None when there is nothing to show.
 
     Args:
-        labels: labels.npz arrays; fused_uv (T, 2, 21, 2), fused_conf (T, 2, 21).
+        labels: the hand's labels; fused_uv (T, 2, 21, 2), fused_conf (T, 2, 21).
         images: optional {"left": (T, H, W[, 3]), "right": ...} video frames; grey otherwise.
     """
     if frames is None:
-        frames = [int(t) for t in np.flatnonzero(labels["onscreen"] & ~labels["valid"])][:max_frames]
+        frames = [int(t) for t in np.flatnonzero(np.asarray(labels.onscreen & ~labels.valid))][:max_frames]
     if not frames:
         return None
     tiles, captions = [], []
     for t in frames:
-        uv = np.asarray(rig.project(jnp.asarray(labels["joints"][t], rig.T_left_right.dtype)), np.float64)  # (2 views, 21, 2)
+        uv = np.asarray(rig.project(jnp.asarray(labels.joints[t], rig.T_left_right.dtype)), np.float64)  # (2 views, 21, 2)
         row = []
         for v, (view, camera) in enumerate((("left", rig.left), ("right", rig.right))):
             base = images[view][t] if images else np.full((camera.height, camera.width, 3), 60, np.uint8)
             base = base if base.ndim == 3 else cv2.cvtColor(base, cv2.COLOR_GRAY2RGB)
             row.append(draw_skeleton(draw_keypoints(base, fused_uv[t, v], fused_conf[t, v]), uv[v]))
         tiles.append(row)
-        captions.append(f"frame {t}: residual {labels['residual_px'][t]:.1f} px, valid={bool(labels['valid'][t])}, stereo={bool(labels['stereo'][t])}")
+        captions.append(f"frame {t}: residual {float(labels.residual_px[t]):.1f} px, valid={bool(labels.valid[t])}" + ("" if labels.stereo is None else f", stereo={bool(labels.stereo[t])}"))
     return contact_sheet(tiles, captions, path)

@@ -1,5 +1,5 @@
 """The package map is the code's: import-linter's layers contract (pyproject.toml's
-`[tool.importlinter]`: apps > train > peers > hand model > core) is kept, it breaks when
+`[tool.importlinter]`: apps > train > peers > clip format > hand model > core) is kept, it breaks when
 a peer imports a floor above it, and docs/architecture.md's map names its layers."""
 
 import pathlib

@@ -253,9 +253,9 @@ def test_labels_match_the_ground_truth(clean_two_hands):
         labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0)
         sequential[side] = labels
         gt = clip.gt[side]
-        ok = labels["valid"] & gt["onscreen"]
+        ok = np.asarray(labels.valid) & gt["onscreen"]
         assert ok.sum() >= 0.7 * gt["onscreen"].sum()
-        pred, true = jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])
+        pred, true = labels.joints, jnp.asarray(gt["joints"])
         assert np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))[ok].mean() < 0.008
         assert np.asarray(jax.vmap(metrics.wrist_error)(pred, true))[ok].mean() < 0.01
         assert report["share_passing"] > 0.7 and report["all"]["table"]["reprojection_residual_px"]["median"] < 12.0
@@ -263,12 +263,12 @@ def test_labels_match_the_ground_truth(clean_two_hands):
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         futures = {side: pool.submit(label_hand, mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0) for side in clip.keypoints}
         for side, future in futures.items():
-            np.testing.assert_array_equal(future.result(timeout=600)[0]["joints"], sequential[side]["joints"])
+            np.testing.assert_array_equal(future.result(timeout=600)[0].joints, sequential[side].joints)
 
 
 def _scores(labels, gt):
-    ok = labels["valid"] & gt["onscreen"]
-    pred, true = jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])
+    ok = np.asarray(labels.valid) & gt["onscreen"]
+    pred, true = labels.joints, jnp.asarray(gt["joints"])
     p = np.asarray(jax.vmap(metrics.p_mpjpe)(pred, true))
     w = np.asarray(jax.vmap(metrics.wrist_error)(pred, true))
     return ok, p, w
@@ -317,7 +317,7 @@ def test_step_counts_do_not_recompile(clean_two_hands):
     )
     labels, _ = label_hand(model, clip.rig, keypoints, 30.0, fitting.LabelConfig(steps=2, shape_lock_steps=7))
     assert compiled == []
-    assert labels["valid"].any()
+    assert labels.valid.any()
 
 
 def test_palm_pose_is_exact_in_one_fisheye_view():
@@ -363,17 +363,17 @@ def test_monocular_frames_on_a_divergent_rig():
             onscreen = clip.gt[side]["onscreen"]
             on += onscreen.sum()
             good += (ok & (p <= 0.015) & (w <= 0.025)).sum()
-            mono += (onscreen & ~labels["stereo"]).sum()
+            mono += (onscreen & ~np.asarray(labels.stereo)).sum()
             borrowed += report["shape_from_other_hand"]
-            assert report["monocular"]["hand_frames"] == int((labels["onscreen"] & ~labels["stereo"]).sum())
+            assert report["monocular"]["hand_frames"] == int((labels.onscreen & ~labels.stereo).sum())
     assert mono > 0.5 * on and borrowed >= 1
     assert good >= 0.8 * on
     clip = _on_aria(FRAMES, 0)
     kp = {k: v.copy() for k, v in clip.keypoints["left"].items()}
     kp["conf"][:, :, 0] = 0.0  # the left camera never sees this hand
     labels, report = label_hand(mano.load_builtin("left"), clip.rig, kp, 30.0)
-    assert report["shape_from_monocular"] and not labels["stereo"].any() and labels["valid"].any()
-    assert np.allclose(labels["betas"], 0.0) and any("the mean shape" in n for n in report["notes"])
+    assert report["shape_from_monocular"] and not labels.stereo.any() and labels.valid.any()
+    assert np.allclose(labels.betas, 0.0) and any("the mean shape" in n for n in report["notes"])
 
 
 @pytest.mark.slow
@@ -386,22 +386,22 @@ def test_bad_inputs_are_labelled_flagged_or_reported(clean_two_hands, tmp_path):
     kp["conf"][:, 10:18, 1] = 0.0  # the right view sees nothing for 8 frames
     kp["uv"][:, 24:27] = 1e30  # absurd pixels, confidently reported: not observations
     labels, report = label_hand(model, clip.rig, kp, 30.0)
-    assert np.all(np.isfinite(labels["joints"]))
+    assert np.all(np.isfinite(labels.joints))
     assert any("NaN" in n for n in report["notes"]) and any("one view" in n for n in report["notes"])
     assert any("far outside the image" in n for n in report["notes"])
-    assert not labels["onscreen"][24:27].any() and not labels["valid"][24:27].any()
-    assert not np.isinf(labels["residual_px"]).any()
+    assert not labels.onscreen[24:27].any() and not labels.valid[24:27].any()
+    assert not np.isinf(labels.residual_px).any()
     # frames seen by one view are labelled as monocular frames, not dropped
-    assert not labels["stereo"][10:18].any() and labels["onscreen"][10:18].all() and labels["valid"][10:18].sum() >= 6
-    assert report["monocular"]["hand_frames"] == 8 and report["stereo"]["hand_frames"] == int(labels["stereo"].sum())
+    assert not labels.stereo[10:18].any() and labels.onscreen[10:18].all() and labels.valid[10:18].sum() >= 6
+    assert report["monocular"]["hand_frames"] == 8 and report["stereo"]["hand_frames"] == int(labels.stereo.sum())
     json.dumps(report, allow_nan=False, default=float)
     never = {k: v.copy() for k, v in clip.keypoints[side].items()}
     never["conf"][:] = 0.0
     labels, report = label_hand(model, clip.rig, never, 30.0)
-    assert not labels["valid"].any() and "never detected" in report["notes"][-1]
+    assert not labels.valid.any() and "never detected" in report["notes"][-1]
     short = {k: v[:, :10] for k, v in clip.keypoints[side].items()}  # fewer frames than a window
     labels, _ = label_hand(model, clip.rig, short, 30.0)
-    assert labels["joints"].shape == (10, 21, 3) and labels["valid"].sum() >= 5
+    assert labels.joints.shape == (10, 21, 3) and labels.valid.sum() >= 5
 
     good = synth.write_clip(clip, tmp_path / "clips" / "good")
     zero = synth.write_clip(clip, tmp_path / "clips" / "zero_baseline")
@@ -428,8 +428,8 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
     out = tmp_path / "labels"
     (tmp_path / "reject.txt").write_text("# reviewer's list\nc0,right,3\nc0,left,4\n")
     assert cli.main(["label", str(tmp_path / "clips"), "--out", str(out), "--reject", str(tmp_path / "reject.txt"), "--review"]) == 0
-    labels = clips.load_npz(clips.hand_file(out / "c0", "right", "labels"), "labels")
-    assert not labels["valid"][3]
+    labels = clips.Labels.from_npz(clips.hand_file(out / "c0", "right", "labels"))
+    assert not labels.valid[3]
     q = json.loads((out / "c0" / "hands" / "right" / "quality.json").read_text(), parse_constant=pytest.fail)  # strict JSON
     assert q["human_rejected_frames"] == [3]
     stamp = (out / "c0" / "meta.json").stat().st_mtime_ns
@@ -440,7 +440,7 @@ def test_label_cli_resume_reject_and_review(clean_two_hands, tmp_path, capsys):
     assert summary["skipped"] == ["c0"] and summary["labelled"] == first  # the resumed run keeps the first run's notes
     (tmp_path / "bad.txt").write_text("c0;right;3\n")
     assert cli.main(["label", str(folder), "--out", str(out), "--reject", str(tmp_path / "bad.txt")]) == 2
-    assert (out / "c0" / "hands" / "right" / "review.png").exists() or labels["valid"][labels["onscreen"]].all()
+    assert (out / "c0" / "hands" / "right" / "review.png").exists() or labels.valid[labels.onscreen].all()
 
 
 @pytest.mark.slow
@@ -470,5 +470,5 @@ def test_monocular_estimates_initialise_the_fit(clean_two_hands):
     assert np.median(err) < 0.06
     labels, report = label_hand(mano.load_builtin(side), clip.rig, clip.keypoints[side], 30.0, monocular=monocular)
     assert any("monocular" in n for n in report["notes"])
-    ok = labels["valid"] & gt["onscreen"]
-    assert np.asarray(jax.vmap(metrics.p_mpjpe)(jnp.asarray(labels["joints"]), jnp.asarray(gt["joints"])))[ok].mean() < 0.008
+    ok = np.asarray(labels.valid) & gt["onscreen"]
+    assert np.asarray(jax.vmap(metrics.p_mpjpe)(labels.joints, jnp.asarray(gt["joints"])))[ok].mean() < 0.008

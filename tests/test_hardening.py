@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cameras, cli, clips
+from esther_jax import cameras, cli, clips, mano
 from esther_jax.eval import evaluate_folders
 from fitting import label as label_module
 
@@ -53,11 +53,8 @@ def _fake_label_hands(models, rig, keypoints, fps, config=None, monocular=None, 
     for side, kp in keypoints.items():
         frames = kp["uv"].shape[1]
         joints = np.zeros((frames, 21, 3), np.float32) + np.float32(0.5)
-        labels = dict(
-            global_orient=np.zeros((frames, 3), np.float32), hand_pose=np.zeros((frames, 15, 3), np.float32),
-            betas=np.zeros(10, np.float32), transl=joints[:, 0], joints=joints, onscreen=np.ones(frames, bool),
-            valid=np.ones(frames, bool), residual_px=np.full(frames, np.nan, np.float32),
-        )  # fmt: skip
+        params = mano.ManoParams(jnp.zeros((frames, 3)), jnp.zeros((frames, 15, 3)), jnp.zeros((frames, 10)), jnp.asarray(joints[:, 0]))
+        labels = clips.Labels(params, jnp.asarray(joints), jnp.ones(frames, bool), jnp.ones(frames, bool), jnp.full(frames, jnp.nan))
         out[side] = labels, {"seconds": 0.001, "notes": [], "median_residual": float("nan"), "inf": float("inf")}
     return out
 
@@ -309,7 +306,7 @@ def test_two_concurrent_label_runs_lose_nothing(tmp_path):
         assert sorted(r["labelled"] + r["skipped"]) == sorted(c.name for c in clip_dirs)
     for clip in clip_dirs:
         for side in ("right", "left"):
-            assert clips.load_npz(clips.hand_file(out / clip.name, side, "labels"), "labels")["valid"].all()
+            assert clips.Labels.from_npz(clips.hand_file(out / clip.name, side, "labels")).valid.all()
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == sorted(c.name for c in clip_dirs)
 
 

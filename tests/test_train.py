@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import mano, metrics
+from esther_jax import clips, mano, metrics
 from esther_jax.files import exclusive_lock
 from esther_jax import model as M
 from esther_jax import train
@@ -488,8 +488,9 @@ def test_train_predict_evaluate_from_the_command_line(synth_clip, tmp_path, caps
     on_a_file = [a if a != str(run) else str(tmp_path / "afile") for a in args]
     assert cli.main(on_a_file) == 2 and "afile is a file, not a folder" in capsys.readouterr().err
     assert cli.main(["predict", "--model", str(run), clips_root, "--out", str(tmp_path / "pred")]) == 0
-    labels = {side: np.load(tmp_path / "pred" / synth_clip.name / "hands" / side / "labels.npz") for side in ("right", "left")}
-    assert labels["right"]["joints"].shape == (8, 21, 3) and labels["left"]["valid"].dtype == bool
+    labels = {side: clips.Labels.from_npz(clips.hand_file(tmp_path / "pred" / synth_clip.name, side, "labels")) for side in ("right", "left")}
+    assert labels["right"].joints.shape == (8, 21, 3) and labels["left"].valid.dtype == bool
+    assert np.all(np.isnan(labels["left"].residual_px)) and labels["left"].stereo is None  # the network measures no residual
     assert cli.main(["evaluate", "--pred", str(tmp_path / "pred"), "--gt", clips_root, "--out", str(tmp_path / "ev")]) == 0
     assert "identity" not in capsys.readouterr().err  # the predictions record their source clip
     assert cli.main(["predict", "--model", str(tmp_path / "nowhere"), clips_root, "--out", str(tmp_path / "p2")]) == 2
@@ -532,9 +533,9 @@ def test_predict_hand_is_the_same_window_batch_by_batch(synth_clip):
     net = M.ESTHER(M.config("cpu-tiny", num_frames=3), key=jax.random.key(0))  # windows at 0, 3, 5 of 8 frames
     rig = StereoRig.from_json(synth_clip / "rig.json")
     one, two = (predict_hand(net, synth_clip, "left", rig, batch=b) for b in (1, 2))
-    assert one["joints"].shape == (8, 21, 3)
-    for key in one:
-        np.testing.assert_allclose(one[key], two[key], atol=1e-5, err_msg=key)
+    assert one.joints.shape == (8, 21, 3) and one.params.betas.shape == (8, 10) and one.onscreen_prob is not None
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(one), jax.tree.leaves(two)):
+        np.testing.assert_allclose(a, b, atol=1e-5, err_msg=jax.tree_util.keystr(path))
 
 
 def test_robustness_conditions_run_through_the_network(synth_clip):

@@ -124,32 +124,32 @@ def _same_clip(labels_dir: pathlib.Path, clip_dir: pathlib.Path) -> bool:
     return True
 
 
-def evaluate_hand(pred: dict, gt: dict, fps: float, *, parameters: bool = False) -> dict:
-    """Per-clip scores of one hand (metres, m/s^2) and the frames they used.
+def evaluate_hand(pred: clips.Labels, gt: dict, fps: float, *, parameters: bool = False) -> dict:
+    """Per-clip scores of one hand (metres, m/s^2) and the frames they used: the labels
+    `pred` (frames `valid`) against the gt.npz arrays `gt` (frames `onscreen`).
 
     `parameters=True` also scores `pose_angle` (radians) and `betas_rmse`: only for a
     prediction and ground truth of the same MANO model (the caller checks).
     """
     T = gt["joints"].shape[0]
-    if pred["joints"].shape != gt["joints"].shape:
-        raise clips.ClipFormatError(f"prediction has {pred['joints'].shape[0]} frames, ground truth {T}")
-    emitted = pred.get("valid", np.ones(T, bool))
-    frames = gt["onscreen"] & emitted
-    errors = _frame_errors(jnp.asarray(pred["joints"]), jnp.asarray(gt["joints"]))
+    if pred.joints.shape != gt["joints"].shape:
+        raise clips.ClipFormatError(f"prediction has {pred.joints.shape[0]} frames, ground truth {T}")
+    frames = gt["onscreen"] & np.asarray(pred.valid)
+    errors = _frame_errors(pred.joints, jnp.asarray(gt["joints"]))
     scores = {name: metrics.clip_mean(errors[name], jnp.asarray(frames)) for name in _FRAME_METRICS}
-    scores["jitter"] = metrics.jitter(jnp.asarray(pred["joints"]), jnp.asarray(frames), fps)
+    scores["jitter"] = metrics.jitter(pred.joints, jnp.asarray(frames), fps)
     scores["gt_jitter"] = metrics.jitter(jnp.asarray(gt["joints"]), jnp.asarray(gt["onscreen"]), fps)
     if parameters:
         dtype = jnp.result_type(float)
         cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731  (files may hold float32 and float64)
-        param_errors = _parameter_errors(cast(pred["hand_pose"]), cast(gt["hand_pose"]), cast(pred["betas"]), cast(gt["betas"]))
+        param_errors = _parameter_errors(cast(pred.params.hand_pose), cast(gt["hand_pose"]), cast(pred.betas), cast(gt["betas"]))
         scores.update({name: metrics.clip_mean(param_errors[name], jnp.asarray(frames)) for name in _PARAM_METRICS})
     return {
         "scores": {k: (float(v.value), int(v.count)) for k, v in scores.items()},
         "frames": frames,
         "coverage": (int(frames.sum()), int(gt["onscreen"].sum())),
         "joint_errors_p": np.asarray(errors["joint_errors_p"])[frames],
-        "wrist_z": (np.asarray(pred["joints"])[frames, 0, 2], gt["joints"][frames, 0, 2]),
+        "wrist_z": (np.asarray(pred.joints)[frames, 0, 2], gt["joints"][frames, 0, 2]),
     }
 
 
@@ -214,7 +214,7 @@ def evaluate_folders(
                 not_compared.append({"hand": hand, "reason": reason})
             elif parameters != "skip":
                 compared.append(hand)
-            pred_labels, gt_arrays = clips.load_npz(pred_path, "labels"), clips.load_npz(gt_path, "gt")
+            pred_labels, gt_arrays = clips.Labels.from_npz(pred_path), clips.load_npz(gt_path, "gt")
             result = evaluate_hand(pred_labels, gt_arrays, fps, parameters=parameters != "skip" and reason is None)
             per_clip.append({"clip": clip.name, "side": side, **result["scores"], "coverage": result["coverage"]})
             all_errors.append(result["joint_errors_p"].reshape(-1))

@@ -116,14 +116,14 @@ def evaluate_hot3d_folders(
                     f"{pred_dir.name}/{side}: the labels are parameters of MANO model {record['id']} ({record.get('source', '?')}); "
                     "give those files with --mano DIR"
                 )
-            gt, pred = clips.load_npz(gt_path, "gt"), clips.load_npz(pred_path, "labels")
-            if len(pred["valid"]) != len(gt["onscreen"]):
-                raise ValueError(f"{clip.name}/{side}: {len(pred['valid'])} predicted frames, {len(gt['onscreen'])} in the ground truth")
-            T = len(pred["valid"])
-            params = mano.ManoParams(jnp.asarray(pred["global_orient"]), jnp.asarray(pred["hand_pose"]),
-                                     jnp.broadcast_to(jnp.asarray(gt["betas"]), (T, 10)), jnp.asarray(pred["transl"]))  # fmt: skip
+            gt, pred = clips.load_npz(gt_path, "gt"), clips.Labels.from_npz(pred_path)
+            if len(pred.valid) != len(gt["onscreen"]):
+                raise ValueError(f"{clip.name}/{side}: {len(pred.valid)} predicted frames, {len(gt['onscreen'])} in the ground truth")
+            T = len(pred.valid)
+            params = mano.ManoParams(pred.params.global_orient, pred.params.hand_pose,
+                                     jnp.broadcast_to(jnp.asarray(gt["betas"]), (T, 10)), pred.params.transl)  # fmt: skip
             joints = np.asarray(fk(model, params))
-            scores = hot3d_sequence_metrics(jnp.asarray(joints), jnp.asarray(gt["joints"]), jnp.asarray(pred["valid"]))
+            scores = hot3d_sequence_metrics(jnp.asarray(joints), jnp.asarray(gt["joints"]), pred.valid)
             per_sequence.append({"hand": f"{clip.name}/{side}", **scores})
     if not per_sequence:
         raise _nothing_scored(pred_root, gt_root, missing)

@@ -44,8 +44,8 @@ PREDICT_BATCH = 8
 """Windows predicted at once (memory: the windows' crops as float32 on the device)."""
 
 
-def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig, *, batch: int = PREDICT_BATCH) -> dict[str, np.ndarray]:
-    """One hand of one clip folder, every frame, as labels arrays. The windows are
+def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig, *, batch: int = PREDICT_BATCH) -> clips.Labels:
+    """One hand of one clip folder, every frame, as `clips.Labels`. The windows are
     predicted `batch` at a time from the memory-mapped crops, so a long recorded clip
     never holds more than a batch of windows in memory."""
     crops = clips.load_crops(clips.crops_file(clip_dir, side), mmap=True)
@@ -74,18 +74,11 @@ def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig,
         owner[s : s + W] = i  # the first window covering a frame wins
     offset = np.arange(T) - np.asarray(starts)[owner]
     take = lambda a: np.asarray(a)[owner, offset]  # noqa: E731
-    emitted = take(out.emitted).astype(bool)
-    return {
-        "global_orient": take(out.params.global_orient).astype(np.float32),
-        "hand_pose": take(out.params.hand_pose).astype(np.float32),
-        "betas": np.asarray(out.params.betas).reshape(-1, 10).mean(axis=0).astype(np.float32),
-        "transl": take(out.params.transl).astype(np.float32),
-        "joints": take(out.joints).astype(np.float32),
-        "onscreen": emitted,
-        "valid": emitted,
-        "residual_px": np.full(T, np.nan, np.float32),
-        "onscreen_prob": take(out.onscreen_prob).astype(np.float32),
-    }
+    emitted = jnp.asarray(take(out.emitted).astype(bool))
+    betas = jnp.asarray(np.asarray(out.params.betas).reshape(-1, 10).mean(axis=0).astype(np.float32))
+    f32 = lambda a: jnp.asarray(take(a).astype(np.float32))  # noqa: E731
+    params = mano.ManoParams(f32(out.params.global_orient), f32(out.params.hand_pose), jnp.broadcast_to(betas, (T, 10)), f32(out.params.transl))
+    return clips.Labels(params, f32(out.joints), emitted, emitted, jnp.full(T, jnp.nan, jnp.float32), onscreen_prob=f32(out.onscreen_prob))
 
 
 def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib.Path], out_dir: str | pathlib.Path, *, progress: bool = True) -> dict:
@@ -110,7 +103,7 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
                 tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{clip.name}.partial-", dir=out_dir))
                 try:
                     for side in sides:
-                        clips.save_npz(clips.hand_file(tmp, side, "labels"), **predict_hand(net, clip, side, rig))
+                        predict_hand(net, clip, side, rig).to_npz(clips.hand_file(tmp, side, "labels"))
                     record = {side: {"id": mano.model_id(mano.load_builtin(side)), "source": "builtin"} for side in sides}
                     source = {"name": clip.name, "digest": clips.clip_digest(clip)}
                     clips.write_meta(tmp, **{**meta, "labelled_by": f"esther predict ({net.config.name})", "mano_model": record, "source_clip": source})

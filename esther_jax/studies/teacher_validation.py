@@ -191,20 +191,20 @@ def hand_frames(
     rig = StereoRig.from_json(clip_dir / "rig.json")
     keypoints = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
     gt = clips.load_npz(clips.hand_file(clip_dir, side, "gt"), "gt")
-    labels = clips.load_npz(clips.hand_file(labels_dir, side, "labels"), "labels")
+    labels = clips.Labels.from_npz(clips.hand_file(labels_dir, side, "labels"))
     dtype = jnp.result_type(float)
     conf = np.array(keypoints["conf"], np.float64)
     conf[far_outside_image(rig, keypoints["uv"])] = 0.0  # not observations, as the teacher treats them
-    arrays = [keypoints["uv"], conf, keypoints["box"], keypoints["box_score"], labels["joints"], gt["joints"], labels["transl"],
-              labels["residual_px"], labels["betas"]]  # fmt: skip
+    arrays = [keypoints["uv"], conf, keypoints["box"], keypoints["box_score"], labels.joints, gt["joints"], labels.params.transl,
+              labels.residual_px, labels.betas]  # fmt: skip
     quality, errors = jax.device_get(
         _hand_frames(mano.load_builtin(side), rig, *(jnp.asarray(a, dtype) for a in arrays), min_joints=config.min_joints_per_view)
     )
     masks = {
         "onscreen": np.asarray(gt["onscreen"], bool),
-        "observed": np.asarray(labels["onscreen"], bool),
-        "stereo": np.asarray(labels["stereo"], bool),
-        "valid": np.asarray(labels["valid"], bool),
+        "observed": np.asarray(labels.onscreen, bool),
+        "stereo": np.asarray(labels.stereo, bool),
+        "valid": np.asarray(labels.valid, bool),
     }
     masks["scored"] = masks["onscreen"] & masks["valid"]
     residual, detector, label, per_pixel = ({k: np.asarray(v[i], np.float64) for k, v in quality.items()} for i in range(4))
