@@ -354,7 +354,7 @@ def apply_transform(T: Float[Array, "*#batch 4 4"], X: Float[Array, "*#batch 3"]
     """
     if T.shape[-2:] != (4, 4) or X.shape[-1:] != (3,):
         raise ValueError(f"apply_transform takes T (..., 4, 4) and X (..., 3); got {T.shape} and {X.shape}")
-    # Broadcast explicitly: strict rank promotion forbids implicit broadcasting across ranks.
+    # Broadcast explicitly: strict rank promotion forbids implicit broadcasts across ranks.
     batch = jnp.broadcast_shapes(T.shape[:-2], X.shape[:-1])
     R_a_b = jnp.broadcast_to(T[..., :3, :3], batch + (3, 3))
     t_a_b = jnp.broadcast_to(T[..., :3, 3], batch + (3,))

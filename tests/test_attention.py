@@ -93,15 +93,18 @@ def _stereo_block_before(block, x):
 def _layers_now_and_before(block, x):
     """(now, before) pairs of the attention layer (self, cross, rotary as in the ViT) and
     of the stereo block's tokens (its probabilities unused, as in the forward pass)."""
-    with jax.numpy_rank_promotion("allow"):  # the layers add (D,) biases to token arrays, as in the network
-        attn = block.cross_attn
-        rope = grid_rope(CFG.grid, CFG.dim // CFG.heads)
-        pairs = []
-        for context, rp in [(None, None), (x[:, ::-1], None), (None, rope)]:
-            pairs.append((attn(x, context, rp), _attention_before(attn, x, context, rp)))
-            pairs.append((attn.attend(x, context, rp)[0], _attention_before(attn, x, context, rp)))
-        pairs.append((block(x)[0], _stereo_block_before(block, x)))
-        return pairs
+    attn = block.cross_attn
+    rope = grid_rope(CFG.grid, CFG.dim // CFG.heads)
+    cases = [(None, None), (x[:, ::-1], None), (None, rope)]
+    now, before = [], []
+    for context, rp in cases:
+        now += [attn(x, context, rp), attn.attend(x, context, rp)[0]]
+    now.append(block(x)[0])
+    with jax.numpy_rank_promotion("allow"):  # the references add (D,) biases to token arrays implicitly, as the layers then did
+        for context, rp in cases:
+            before += [_attention_before(attn, x, context, rp)] * 2
+        before.append(_stereo_block_before(block, x))
+    return list(zip(now, before))
 
 
 def test_layers_compute_what_they_did_before_the_probe(net):

@@ -5,28 +5,19 @@ frame's or one view's tokens form a sequence without a `vmap`. Weights are plain
 arrays with `x @ w + b` products: one GEMM per layer on the CPU. Pre-norm residual
 blocks, GELU MLPs, multi-head softmax attention; initialisation follows ViT practice
 (truncated normal, std 0.02; zero biases; unit LayerNorm scales).
+
+The network runs under strict rank promotion: a bias, scale or table of lower rank
+than the tokens is given leading unit axes explicitly (`jax.lax.broadcast_to_rank`,
+the same operation NumPy-style rank promotion inserts, so the same program) before it
+is combined with them.
 """
 
-import functools
 import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
-
-
-def broadcasting(fn):
-    """Run `fn` with NumPy rank promotion allowed: layers add biases, embeddings and
-    tokens of shape (D,) to (..., tokens, D) arrays, the one broadcast networks rely on.
-    (Our tests make implicit rank promotion an error everywhere else.)"""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with jax.numpy_rank_promotion("allow"):
-            return fn(*args, **kwargs)
-
-    return wrapper
 
 
 def _trunc_normal(key: PRNGKeyArray, shape: tuple[int, ...], std: float = 0.02) -> Array:
@@ -45,7 +36,7 @@ class Dense(eqx.Module):
 
     def __call__(self, x: Float[Array, "*batch fan_in"]) -> Float[Array, "*batch fan_out"]:
         y = x @ self.weight
-        return y if self.bias is None else y + self.bias
+        return y if self.bias is None else y + jax.lax.broadcast_to_rank(self.bias, y.ndim)
 
 
 class LayerNorm(eqx.Module):
@@ -63,7 +54,8 @@ class LayerNorm(eqx.Module):
     def __call__(self, x: Float[Array, "*batch dim"]) -> Float[Array, "*batch dim"]:
         mean = jnp.mean(x, axis=-1, keepdims=True)
         var = jnp.mean(jnp.square(x - mean), axis=-1, keepdims=True)
-        return (x - mean) * jax.lax.rsqrt(var + self.eps) * self.weight + self.bias
+        weight, bias = jax.lax.broadcast_to_rank(self.weight, x.ndim), jax.lax.broadcast_to_rank(self.bias, x.ndim)
+        return (x - mean) * jax.lax.rsqrt(var + self.eps) * weight + bias
 
 
 class Mlp(eqx.Module):
@@ -103,7 +95,7 @@ def grid_rope(grid: int, head_dim: int, base: float = 100.0) -> Rope:
     coords = 2.0 * (jnp.arange(grid, dtype=dtype) + 0.5) / grid - 1.0
     rows, cols = jnp.meshgrid(coords, coords, indexing="ij")
     yx = jnp.stack([rows.reshape(-1), cols.reshape(-1)], axis=-1)  # (P, 2)
-    angles = (2.0 * jnp.pi * yx[:, :, None] / periods).reshape(grid * grid, 2 * quarter)
+    angles = (2.0 * jnp.pi * yx[:, :, None] / periods[None, None, :]).reshape(grid * grid, 2 * quarter)
     angles = jnp.concatenate([angles, angles], axis=-1)
     return Rope(sin=jnp.sin(angles), cos=jnp.cos(angles))
 
@@ -114,7 +106,8 @@ def _apply_rope(x: Float[Array, "*batch heads tokens head_dim"], rope: Rope) -> 
     prefix, patches = x[..., : x.shape[-2] - n, :], x[..., x.shape[-2] - n :, :]
     half = patches.shape[-1] // 2
     rotated = jnp.concatenate([-patches[..., half:], patches[..., :half]], axis=-1)
-    return jnp.concatenate([prefix, patches * rope.cos + rotated * rope.sin], axis=-2)
+    cos, sin = jax.lax.broadcast_to_rank(rope.cos, patches.ndim), jax.lax.broadcast_to_rank(rope.sin, patches.ndim)
+    return jnp.concatenate([prefix, patches * cos + rotated * sin], axis=-2)
 
 
 class Attention(eqx.Module):
@@ -156,10 +149,10 @@ class Attention(eqx.Module):
         dim = x.shape[-1]
         w, b = self.qkv.weight, self.qkv.bias
         if context is None:
-            q, k, v = jnp.split(x @ w + b, 3, axis=-1)
+            q, k, v = jnp.split(x @ w + jax.lax.broadcast_to_rank(b, x.ndim), 3, axis=-1)
         else:
-            q = x @ w[:, :dim] + b[:dim]
-            k, v = jnp.split(context @ w[:, dim:] + b[dim:], 2, axis=-1)
+            q = x @ w[:, :dim] + jax.lax.broadcast_to_rank(b[:dim], x.ndim)
+            k, v = jnp.split(context @ w[:, dim:] + jax.lax.broadcast_to_rank(b[dim:], context.ndim), 2, axis=-1)
 
         def heads(t):
             return jnp.swapaxes(t.reshape(t.shape[:-1] + (self.heads, dim // self.heads)), -2, -3)
@@ -198,9 +191,9 @@ class Block(eqx.Module):
 
     def __call__(self, x: Float[Array, "*batch tokens dim"], rope: Rope | None = None) -> Float[Array, "*batch tokens dim"]:
         a = self.attn(self.norm1(x), rope=rope)
-        x = x + (a if self.ls1 is None else a * self.ls1)
+        x = x + (a if self.ls1 is None else a * jax.lax.broadcast_to_rank(self.ls1, a.ndim))
         m = self.mlp(self.norm2(x))
-        return x + (m if self.ls2 is None else m * self.ls2)
+        return x + (m if self.ls2 is None else m * jax.lax.broadcast_to_rank(self.ls2, m.ndim))
 
 
 class CrossBlock(eqx.Module):

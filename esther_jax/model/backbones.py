@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._layers import Block, Dense, LayerNorm, _trunc_normal, broadcasting, grid_rope
+from ._layers import Block, Dense, LayerNorm, _trunc_normal, grid_rope
 from .config import BackboneSpec
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -27,8 +27,8 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def _normalise(images: Float[Array, "*batch 3 S S"]) -> Float[Array, "*batch 3 S S"]:
-    mean = jnp.asarray(IMAGENET_MEAN, images.dtype)[:, None, None]
-    std = jnp.asarray(IMAGENET_STD, images.dtype)[:, None, None]
+    mean = jax.lax.broadcast_to_rank(jnp.asarray(IMAGENET_MEAN, images.dtype)[:, None, None], images.ndim)
+    std = jax.lax.broadcast_to_rank(jnp.asarray(IMAGENET_STD, images.dtype)[:, None, None], images.ndim)
     return (images - mean) / std
 
 
@@ -56,7 +56,6 @@ class ViT(eqx.Module):
         self.norm = LayerNorm(spec.width, 1e-5)
         self.patch_size, self.heads = p, spec.heads
 
-    @broadcasting
     def __call__(self, images: Float[Array, "*batch 3 S S"]) -> Float[Array, "*batch patches width"]:
         p = self.patch_size
         size = images.shape[-1]
@@ -96,12 +95,11 @@ class ConvStem(eqx.Module):
         self.biases = tuple(jnp.zeros(b, jnp.result_type(float)) for b in widths[1:])
         self.norm = LayerNorm(spec.width)
 
-    @broadcasting
     def __call__(self, images: Float[Array, "*batch 3 S S"]) -> Float[Array, "*batch patches width"]:
         lead = images.shape[:-3]
         x = _normalise(images).reshape((-1,) + images.shape[-3:])
         for i, (kernel, bias) in enumerate(zip(self.kernels, self.biases)):
-            x = jax.lax.conv_general_dilated(x, kernel, (2, 2), ((1, 1), (1, 1))) + bias[:, None, None]
+            x = jax.lax.conv_general_dilated(x, kernel, (2, 2), ((1, 1), (1, 1))) + bias[None, :, None, None]
             x = jax.nn.gelu(x, approximate=False) if i < len(self.kernels) - 1 else x
         x = jnp.moveaxis(x, 1, -1)
         return self.norm(x.reshape(lead + (-1, x.shape[-1])))

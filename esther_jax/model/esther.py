@@ -25,7 +25,6 @@ from ..files import file_sha256, read_json
 from ..crops import crop_poses, resize_crops
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
-from ._layers import broadcasting
 from .backbones import ConvStem, ViT, make_backbone
 from .config import ModelConfig, config
 from .fusion_decoder import Decoded, FusionDecoder, evidence_statistics
@@ -124,7 +123,7 @@ class ESTHER(eqx.Module):
             raise ValueError(f"clip has {T} frames; config {cfg.name!r} was built for at most {cfg.num_frames}")
         present = clip.view_present
         if cfg.monocular:
-            present = present & jnp.asarray([True, False])
+            present = present & jnp.asarray([[True, False]])
         return present
 
     def patch_features(self, clip: ClipInput) -> Float[Array, "T 2 P C"]:
@@ -143,7 +142,6 @@ class ESTHER(eqx.Module):
         features = self.backbone(clip.images.astype(compute))
         return jax.lax.stop_gradient(features) if cfg.freeze_backbone else features
 
-    @broadcasting
     def __call__(
         self, clip: ClipInput, hand_model: ManoModel, *, motion_mask: Bool[Array, "T 21"] | None = None
     ) -> ESTHEROutput:
@@ -177,7 +175,6 @@ class ESTHER(eqx.Module):
         return ESTHEROutput(image=image, motion=motion, decoded=decoded, params=params, joints=hands.joints, vertices=hands.vertices)
 
 
-@broadcasting
 def cross_view_attention(net: ESTHER, clip: ClipInput) -> Float[Array, "layers T 2 heads P P"]:
     """The cross-view attention probabilities of the stereo blocks on one clip, as the
     forward pass `net(clip, ...)` computes them (same weights, same code): the probe of
@@ -260,10 +257,9 @@ def parameter_counts(name: str | ModelConfig = "paper") -> dict[str, int]:
 def _mirror_conjugate(A: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
     """`M A M` with `M = diag(-1, 1, 1[, 1])`: a rotation or rigid transform seen in the mirror world."""
     m = jnp.asarray(_MIRROR + (1.0,) * (A.shape[-1] - 3), A.dtype)
-    return A * m[:, None] * m[None, :]
+    return A * jax.lax.broadcast_to_rank(m[:, None], A.ndim) * jax.lax.broadcast_to_rank(m[None, :], A.ndim)
 
 
-@broadcasting
 def mirror_clip(clip: ClipInput, *, mirrored_features: Array | None = None, crop_size: int | None = None) -> ClipInput:
     """The mirror image of a clip (x -> -x in the rig frame), views swapped.
 
@@ -286,7 +282,8 @@ def mirror_clip(clip: ClipInput, *, mirrored_features: Array | None = None, crop
     K = K.at[..., 0, 2].set(size - 1.0 - K[..., 0, 2])
     T_mirror = _mirror_conjugate(clip.T_rig_cams)[..., ::-1, :, :]
     lead = clip.flow.shape[:-1]
-    flow_grid = clip.flow[..., :128].reshape(lead + (8, 8, 2))[..., ::-1, :] * jnp.asarray([-1.0, 1.0], clip.flow.dtype)
+    flow_grid = clip.flow[..., :128].reshape(lead + (8, 8, 2))[..., ::-1, :]
+    flow_grid = flow_grid * jax.lax.broadcast_to_rank(jnp.asarray([-1.0, 1.0], clip.flow.dtype), flow_grid.ndim)
     flow_flags = clip.flow[..., 128:].reshape(lead + (8, 8))[..., ::-1]
     return ClipInput(
         images=None if clip.images is None else clip.images[..., ::-1, :, :, :][..., ::-1],
@@ -311,13 +308,12 @@ class HandPrediction(eqx.Module):
     """On-screen probability above the threshold: the frames whose hand is emitted."""
 
 
-@broadcasting
 def unmirror(out: HandPrediction, T_rig_cams: Float[Array, "2 4 4"]) -> HandPrediction:
     """Bring one clip's prediction on `mirror_clip(clip)` back to `clip` (a left hand)."""
     T1 = T_rig_cams[1]
 
     def points(x):
-        return mirror_points(x) @ T1[:3, :3].T + T1[:3, 3]
+        return mirror_points(x) @ T1[:3, :3].T + jax.lax.broadcast_to_rank(T1[:3, 3], x.ndim)
 
     params = jax.vmap(lambda p: transform_params(T1, mirror_params(p)))(out.params)
     return dataclasses.replace(out, params=params, joints=points(out.joints), vertices=points(out.vertices))

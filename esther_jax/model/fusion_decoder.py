@@ -26,7 +26,7 @@ from .._math import matmul3
 from ..mano.constants import MANO_PARENTS
 from ..mano.kinematics import _levels
 from ..rotations import matrix_to_rotation_6d, rotation_6d_to_matrix
-from ._layers import Attention, LayerNorm, Mlp, _trunc_normal, broadcasting
+from ._layers import Attention, LayerNorm, Mlp, _trunc_normal
 from .config import ModelConfig
 from .motion_encoder import MotionEvidence
 from .stereo_encoder import ImageEvidence
@@ -46,7 +46,6 @@ inputs, so its small axis (the height y) is not left in a direction of small var
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 
-@broadcasting
 def evidence_statistics(
     image: ImageEvidence, view_present: Bool[Array, "T 2"], motion_mask: Bool[Array, "T 21"]
 ) -> Float[Array, "T 4"]:
@@ -131,7 +130,6 @@ class Decoded(eqx.Module):
     """Softmax gate per layer and token over (S_img, S_mot, S_root)."""
 
 
-@broadcasting
 def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"], dtype=None) -> tuple[Float[Array, "16 6"], Float[Array, "16 3 3"]]:
     """Local 6D rotation of each MANO joint from its token and its parent's world rotation.
 
@@ -150,7 +148,7 @@ def decode_kinematic_tree(head: Mlp, tokens: Float[Array, "16 D"], dtype=None) -
         else:
             parent_world = world[np.asarray([order.index(MANO_PARENTS[j]) for j in joints])]
             parent6 = matrix_to_rotation_6d(parent_world)
-        out = head(jnp.concatenate([tokens[np.asarray(joints)], parent6.astype(tokens.dtype)], axis=-1)).astype(dtype) + identity6
+        out = head(jnp.concatenate([tokens[np.asarray(joints)], parent6.astype(tokens.dtype)], axis=-1)).astype(dtype) + identity6[None]
         R = rotation_6d_to_matrix(out)
         level_world = R if parent_world is None else matmul3(parent_world, R)
         world = level_world if world is None else jnp.concatenate([world, level_world])
@@ -188,7 +186,6 @@ class FusionDecoder(eqx.Module):
         self.wrist_input = Mlp(3, d, d, key=jax.random.fold_in(key, 6)) if cfg.triangulated_wrist_input else None
         self.anchored_wrist = cfg.anchored_wrist
 
-    @broadcasting
     def __call__(
         self,
         image_features: Float[Array, "T 21 D"],
@@ -203,8 +200,8 @@ class FusionDecoder(eqx.Module):
         evidence = evidence.astype(q.dtype)
         prior = jnp.asarray(WRIST_PRIOR_M, geometry)
         if self.wrist_input is not None:  # evidence, like the gate's statistics: no gradient into the triangulation
-            seen = jnp.where(wrist_valid[:, None], jax.lax.stop_gradient(triangulated_wrist), prior)
-            embedded = self.wrist_input(((seen - prior) / WRIST_INPUT_SCALE_M).astype(q.dtype))
+            seen = jnp.where(wrist_valid[:, None], jax.lax.stop_gradient(triangulated_wrist), prior[None])
+            embedded = self.wrist_input(((seen - prior[None]) / WRIST_INPUT_SCALE_M).astype(q.dtype))
             q = q.at[:, WRIST_TOKEN].add(jnp.where(wrist_valid[:, None], embedded, 0.0))
         gates = []
         for layer in self.layers:

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ..clips import FLOW_TOKEN_SIZE
-from ._layers import Block, Dense, LayerNorm, _trunc_normal, broadcasting
+from ._layers import Block, Dense, LayerNorm, _trunc_normal
 from .config import ModelConfig
 from .stereo_encoder import NUM_KEYPOINTS
 
@@ -76,19 +76,17 @@ class MotionEncoder(eqx.Module):
         self.pose_head = Dense(d, 16 * 6, key=keys[8])
         self.velocity_head = Dense(d, 3, key=keys[9])
 
-    @broadcasting
     def mask(self, features: Float[Array, "T 21 D"], motion_mask: Bool[Array, "T 21"]) -> Float[Array, "T 21 D"]:
         """F with its masked slots replaced by the motion mask token."""
-        return jnp.where(motion_mask[..., None], self.mask_token, features)
+        return jnp.where(motion_mask[..., None], self.mask_token[None, None], features)
 
-    @broadcasting
     def __call__(self, masked_features: Float[Array, "T 21 D"], flow: Float[Array, "T 192"]) -> MotionEvidence:
         """Encode `mask(F, motion_mask)` with the flow tokens."""
         T = masked_features.shape[0]
         if T > self.time_embed.shape[0]:
             raise ValueError(f"clip has {T} frames; this model was built for at most {self.time_embed.shape[0]}")
         time = self.time_embed[:T, None, :]
-        joints = masked_features + self.joint_embed + time
+        joints = masked_features + self.joint_embed[None] + time
         root = jnp.broadcast_to(self.root_token, (T, 1, self.root_token.shape[0])) + time
         parts = [joints, root]
         if self.flow_embed is not None:

@@ -30,7 +30,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 from ..cameras import PinholeCamera
 from ..crops import Crop, crop_poses, patch_centres, plucker_rays
 from ..triangulation import triangulate
-from ._layers import Attention, CrossBlock, Dense, LayerNorm, Mlp, _trunc_normal, broadcasting
+from ._layers import Attention, CrossBlock, Dense, LayerNorm, Mlp, _trunc_normal
 from .config import ModelConfig
 
 NUM_KEYPOINTS = 21
@@ -166,17 +166,16 @@ class StereoImageEncoder(eqx.Module):
                 return plucker_rays(Crop(camera=camera, R_cam_crop=R), T_rig_cam, self.grid).reshape(P, 6)
 
             ray = jax.vmap(jax.vmap(rays, in_axes=(0, 0, 0)), in_axes=(0, 0, None))(cameras, R_cam_crop, T_rig_cams)
-            ray = ray * jnp.asarray([1.0, 1.0, 1.0] + [PLUCKER_MOMENT_SCALE] * 3, ray.dtype)
+            ray = ray * jax.lax.broadcast_to_rank(jnp.asarray([1.0, 1.0, 1.0] + [PLUCKER_MOMENT_SCALE] * 3, ray.dtype), ray.ndim)
             tokens = tokens + self.ray_embed(ray.astype(tokens.dtype))
-        tokens = jnp.where(view_present[..., None, None], tokens, self.view_mask_token)
-        tokens = tokens + self.view_embed[:, None, :]
+        tokens = jnp.where(view_present[..., None, None], tokens, self.view_mask_token[None, None, None])
+        tokens = tokens + self.view_embed[None, :, None, :]
         cross = []
         for block in self.blocks:
             tokens, probs = block(tokens)
             cross.append(probs)
         return tokens, tuple(cross)
 
-    @broadcasting
     def cross_view_attention(
         self,
         features: Float[Array, "T 2 P C"],
@@ -203,7 +202,6 @@ class StereoImageEncoder(eqx.Module):
         _, cross = self._stereo_tokens(features, cameras, R_cam_crop, T_rig_cams, view_present)
         return jnp.stack(cross)
 
-    @broadcasting
     def __call__(
         self,
         features: Float[Array, "T 2 P C"],
@@ -216,7 +214,7 @@ class StereoImageEncoder(eqx.Module):
         K, R_cam_crop, cameras = self._calibration(K, R_cam_crop, view_present)
         tokens, _ = self._stereo_tokens(features, cameras, R_cam_crop, T_rig_cams, view_present)
 
-        queries = jnp.broadcast_to(self.joint_queries + self.view_embed[:, None, :], (T, 2) + self.joint_queries.shape)
+        queries = jnp.broadcast_to(self.joint_queries[None] + self.view_embed[:, None, :], (T, 2) + self.joint_queries.shape)
         for block in self.readout:
             queries = block(queries, tokens)
         queries = self.norm_queries(queries)
