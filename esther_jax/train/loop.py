@@ -63,17 +63,25 @@ class TrainConfig:
     stage: str = "joint"
     """'image' (stage 1: the image encoder under its guidance) or 'joint' (stage 2)."""
     steps: int = 1000
+    """Optimisation steps of the run (the learning rate's cosine ends at the last)."""
     batch: int = 8
+    """Windows per step (all devices and processes together)."""
     learning_rate: float = 2e-4
+    """Peak learning rate (appendix E: 2e-4)."""
     warmup_steps: int = 500
+    """Linear warm-up steps (appendix E: 500)."""
     weight_decay: float = 0.05
     """AdamW's decoupled weight decay (the paper gives none; 0.05 as in DINO-style ViT training)."""
     clip_norm: float = 1.0
+    """Global-norm gradient clipping."""
     seed: int = 0
+    """Seeds a fresh network's weights and each step's batch, masking and augmentation."""
     ema_decay: float | None = None
-    """EMA of the trainable weights (e.g. 0.999), saved beside them and used for the final model."""
+    """EMA of the trainable weights (e.g. 0.999), saved beside them and used for validation and the final model."""
     checkpoint_every: int = 100
+    """Steps between checkpoints (and one at the end)."""
     keep_checkpoints: int = 3
+    """The last this many checkpoints are kept."""
     compute_dtype: str = "float32"
     """'float32', or 'bfloat16': mixed precision, the network computed in bfloat16 from
     float32 master weights (`model.cast`), geometry, forward kinematics and losses in
