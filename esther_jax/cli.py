@@ -9,11 +9,7 @@ from .files import check_out_dir, write_json
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="esther", description="ESTHER: metric 3D hands from egocentric stereo (JAX)")
-    commands = parser.add_subparsers(dest="command", required=True)
-    for add_command in _COMMANDS:  # each adds its parser, whose defaults name its run function
-        add_command(commands)
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:  # before minutes of work: the output folder must be a writable folder (crops writes into its clips; train
         # creates and locks its run folder at once, and removes it again when the run fails to start)
         if args.command not in ("crops", "train"):
@@ -27,19 +23,31 @@ def main(argv: list[str] | None = None) -> int:
     return args.run(args)
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """`esther`'s parser: a subcommand per `_COMMANDS` entry, its run function `args.run`."""
+    top = argparse.ArgumentParser(prog="esther", description="ESTHER: metric 3D hands from egocentric stereo (JAX)")
+    commands = top.add_subparsers(dest="command", required=True)
+    for add_command in _COMMANDS:  # each adds its parser, whose defaults name its run function
+        add_command(commands)
+    return top
+
+
 def _config_flags(parser, cls, flags: dict[str, dict]) -> None:
     """A flag for each field of the dataclass `cls` named in `flags`, in the fields'
     order: `--field-name` (`flags[name]["flag"]` renames it), its type, default and help
     (the field's docstring, then the default) from the field, other `flags[name]` keys
     given to `add_argument` as they are (e.g. `choices`, or a `help` or `default` of the
-    command's own). A bool field is a switch. The value lands in `args.<cls name>.<field>`
-    (`_config_values`)."""
+    command's own). A bool field is a switch, a Literal one a choice. The value lands in
+    `args.<cls name>.<field>` (`_config_values`)."""
     import ast
     import inspect
     import textwrap
     import typing
 
-    source = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    try:
+        source = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    except (OSError, TypeError):  # no source (e.g. only compiled files installed): flags without their docstrings
+        source = []
     docs = {node.target.id: after.value.value for node, after in zip(source, source[1:])
             if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)}  # fmt: skip
     types = typing.get_type_hints(cls)
@@ -49,7 +57,11 @@ def _config_flags(parser, cls, flags: dict[str, dict]) -> None:
         options = dict(flags[field.name])
         flag = options.pop("flag", "--" + field.name.replace("_", "-"))
         options.setdefault("default", field.default)
-        kind = next(t for t in (typing.get_args(types[field.name]) or (types[field.name],)) if t is not type(None))
+        hint = types[field.name]
+        if typing.get_origin(hint) is typing.Literal:  # its values are the choices
+            options.setdefault("choices", list(typing.get_args(hint)))
+            hint = type(typing.get_args(hint)[0])
+        kind = next(t for t in (typing.get_args(hint) or (hint,)) if t is not type(None))  # X | None: X
         if kind is bool:
             options.setdefault("action", argparse.BooleanOptionalAction if options["default"] else "store_true")
         else:
@@ -57,7 +69,7 @@ def _config_flags(parser, cls, flags: dict[str, dict]) -> None:
             if "choices" not in options:
                 options.setdefault("metavar", flag.removeprefix("--").replace("-", "_").upper())
         if "help" not in options and field.name in docs:
-            text = " ".join(docs[field.name].replace("`", "").split()).removesuffix(".")
+            text = " ".join(docs[field.name].replace("`", "").replace("%", "%%").split()).removesuffix(".")
             options["help"] = text[0].lower() + text[1:] if text[1:2].islower() else text
         if options["default"] is not None and options["default"] is not False and "help" in options:
             options["help"] += " (default %(default)s)"
