@@ -1,6 +1,7 @@
 """The `esther` command line (thin: parse, call the library, print)."""
 
 import argparse
+import dataclasses
 import pathlib
 import sys
 
@@ -8,12 +9,95 @@ from .files import check_out_dir, write_json
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="esther", description="ESTHER: metric 3D hands from egocentric stereo (JAX)")
-    commands = parser.add_subparsers(dest="command", required=True)
+    args = build_parser().parse_args(argv)
+    try:  # before minutes of work: the output folder must be a writable folder (crops writes into its clips; train
+        # creates and locks its run folder at once, and removes it again when the run fails to start)
+        if args.command not in ("crops", "train"):
+            check_out_dir(args.out)
+    except ValueError as err:
+        print(f"esther {args.command}: {err}", file=sys.stderr)
+        return 2
+    from . import enable_compilation_cache
+
+    enable_compilation_cache()
+    return args.run(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """`esther`'s parser: a subcommand per `_COMMANDS` entry, its run function `args.run`."""
+    top = argparse.ArgumentParser(prog="esther", description="ESTHER: metric 3D hands from egocentric stereo (JAX)")
+    commands = top.add_subparsers(dest="command", required=True)
+    for add_command in _COMMANDS:  # each adds its parser, whose defaults name its run function
+        add_command(commands)
+    return top
+
+
+def _config_flags(parser, cls, flags: dict[str, dict]) -> None:
+    """A flag for each field of the dataclass `cls` named in `flags`, in the fields'
+    order: `--field-name` (`flags[name]["flag"]` renames it), its type, default and help
+    (the field's docstring, then the default) from the field, other `flags[name]` keys
+    given to `add_argument` as they are (e.g. `choices`, or a `help` or `default` of the
+    command's own). A bool field is a switch, a Literal one a choice. The value lands in
+    `args.<cls name>.<field>` (`_config_values`)."""
+    import ast
+    import inspect
+    import textwrap
+    import typing
+
+    try:
+        source = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    except (OSError, TypeError):  # no source (e.g. only compiled files installed): flags without their docstrings
+        source = []
+    docs = {node.target.id: after.value.value for node, after in zip(source, source[1:])
+            if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)}  # fmt: skip
+    types = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        if field.name not in flags:
+            continue
+        options = dict(flags[field.name])
+        flag = options.pop("flag", "--" + field.name.replace("_", "-"))
+        options.setdefault("default", field.default)
+        hint = types[field.name]
+        if typing.get_origin(hint) is typing.Literal:  # its values are the choices
+            options.setdefault("choices", list(typing.get_args(hint)))
+            hint = type(typing.get_args(hint)[0])
+        kind = next(t for t in (typing.get_args(hint) or (hint,)) if t is not type(None))  # X | None: X
+        if kind is bool:
+            options.setdefault("action", argparse.BooleanOptionalAction if options["default"] else "store_true")
+        else:
+            options.setdefault("type", kind)
+            if "choices" not in options:
+                options.setdefault("metavar", flag.removeprefix("--").replace("-", "_").upper())
+        if "help" not in options and field.name in docs:
+            text = " ".join(docs[field.name].replace("`", "").replace("%", "%%").split()).removesuffix(".")
+            options["help"] = text[0].lower() + text[1:] if text[1:2].islower() else text
+        if options["default"] is not None and options["default"] is not False and "help" in options:
+            options["help"] += " (default %(default)s)"
+        parser.add_argument(flag, dest=f"{cls.__name__}.{field.name}", **options)
+
+
+def _config_values(args, cls) -> dict:
+    """The fields of `cls` that `_config_flags` made flags of, as parsed."""
+    prefix = cls.__name__ + "."
+    return {key.removeprefix(prefix): value for key, value in vars(args).items() if key.startswith(prefix)}
+
+
+def _demo_parser(commands) -> None:
     demo = commands.add_parser("demo", help="run the main job on the embedded default (built-in hand model)")
     demo.add_argument("--out", default="esther_demo", help="output folder (default: ./esther_demo)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--frames", type=int, default=128, help="frames of the synthetic clip (default 128)")
+    demo.set_defaults(run=_demo)
+
+
+def _demo(args) -> int:
+    from .demo import run
+
+    run(args.out, seed=args.seed, frames=args.frames)
+    return 0
+
+
+def _evaluate_parser(commands) -> None:
     evaluate = commands.add_parser("evaluate", help="compare label folders with ground truth; write metrics, tables, figures")
     evaluate.add_argument("--pred", required=True, help="folder of predicted labels (<clip>/hands/<side>/labels.npz)")
     evaluate.add_argument("--gt", required=True, help="folder of clips with ground truth (<clip>/hands/<side>/gt.npz)")
@@ -30,6 +114,61 @@ def main(argv: list[str] | None = None) -> int:
                           help="esther: our tables (P-MPJPE, PA-MPJPE, wrist, jitter, ...); hot3d: HOT3D's official pose metrics "
                                "(19 landmarks, absolute MPJPE, PCK-AUC, every 10th frame, frame-weighted, ground-truth shape substituted)")  # fmt: skip
     evaluate.add_argument("--mano", metavar="DIR", help="with --preset hot3d: your MANO files, when the labels are parameters of them")
+    evaluate.set_defaults(run=_evaluate)
+
+
+def _evaluate(args) -> int:
+    if args.preset == "hot3d":
+        return _evaluate_hot3d(args)
+    from .eval import evaluate_folders
+
+    if args.mano:
+        print("esther evaluate: --mano is for --preset hot3d (our preset compares the labels' own joints)", file=sys.stderr)
+        return 2
+
+    try:
+        result = evaluate_folders(args.pred, args.gt, args.out, method=args.method, seed=args.seed, parameters=args.params)
+    except ValueError as err:  # bad folders or files, models that differ with --params require: say what
+        print(f"esther evaluate: {err}", file=sys.stderr)
+        return 2
+    skipped = result["parameters"]["not_compared"]
+    if skipped:
+        print(
+            f"esther evaluate: MANO parameters (pose, betas) not compared for {len(skipped)} of {result['num_hands']} "
+            f"hands, joints scored for all (list in metrics.json); first, {skipped[0]['hand']}: {skipped[0]['reason']}",
+            file=sys.stderr,
+        )
+    if result["identity_unverified"]:
+        print(
+            f"esther evaluate: {len(result['identity_unverified'])} predicted clips record no source clip (not labelled by "
+            f"esther label?), so their identity was not checked: {', '.join(result['identity_unverified'][:5])}",
+            file=sys.stderr,
+        )
+    print((pathlib.Path(args.out) / "table.md").read_text())
+    missing = result["missing_predictions"]
+    print(
+        f"{result['num_hands']} hands scored, {len(missing)} ground-truth hands with no prediction"
+        + (f" ({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})" if missing else "")
+        + f"; coverage {result['coverage']:.1%} of the on-screen ground-truth hand-frames; wrote {pathlib.Path(args.out).resolve()}"
+    )
+    return 0
+
+
+def _evaluate_hot3d(args) -> int:
+    from .eval import evaluate_hot3d_folders
+
+    try:
+        models = _mano_models(args.mano)[0] if args.mano else None
+        result = evaluate_hot3d_folders(args.pred, args.gt, args.out, models)
+    except (OSError, ValueError) as err:
+        print(f"esther evaluate: {err}", file=sys.stderr)
+        return 2
+    print((pathlib.Path(args.out) / "table.md").read_text())
+    print(f"{len(result['per_sequence'])} hands, {len(result['missing'])} not labelled; wrote {pathlib.Path(args.out).resolve()}")
+    return 0
+
+
+def _synth_parser(commands) -> None:
     synth = commands.add_parser("synth", help="make synthetic egocentric stereo clips with exact ground truth")
     synth.add_argument("--out", required=True, help="output folder (clip_00000, clip_00001, ...)")
     synth.add_argument("--clips", type=int, default=10, help="number of clips (an interrupted run resumes)")
@@ -55,34 +194,33 @@ def main(argv: list[str] | None = None) -> int:
         "(held-out sets past the training range, e.g. --depth-range 0.1 1.1). Default egocentric",
     )  # fmt: skip
     synth.add_argument("--seed", type=int, default=0)
-    detect = commands.add_parser("detect", help="stereo videos (or image folders) + rig.json -> a clip folder with 2D keypoints")
-    detect.add_argument("--left", required=True, help="the left view: a video file or a folder of images (sorted by name)")
-    detect.add_argument("--right", required=True, help="the right view, same number of frames")
-    detect.add_argument("--rig", required=True, help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
-    detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it)")
-    detect.add_argument("--detector", action="append", metavar="NAME",
-                        help="mediapipe (default; the detect extra; each image and its mirror), mediapipe:direct (the image only, "
-                             "half the time), onnx:MODEL.onnx (a YOLO-pose hand model you own) or "
-                             "vitpose:MODEL.onnx[@BOXES] (a top-down heatmap model you own, on the boxes of the detector BOXES, "
-                             "default mediapipe); repeat for several detectors (the D axis of keypoints.npz)")  # fmt: skip
-    detect.add_argument("--fps", type=float, help="frame rate (read from the videos when omitted; needed for image folders)")
-    detect.add_argument("--rectify", default="offbb120", choices=["offbb120", "offbb90", "offbb150"],
-                        help="fisheye views are undistorted to this wide pinhole for detection (appendix M), keypoints mapped back")  # fmt: skip
-    detect.add_argument("--videos", default="link", choices=["link", "copy", "encode"], help="how the clip's video/*.mp4 are made (image folders: encoded)")
-    importer = commands.add_parser(
-        "import-hot3d", help="HOT3D sequences or HOT3D-Clips tars -> clip folders (calibration, head motion, boxes, MANO ground truth)"
-    )
-    importer.add_argument("sources", nargs="+", help="per-sequence export folders (metadata.json, mano_hand_pose_trajectory.jsonl, ...) or clip tars")
-    importer.add_argument("--out", required=True, help="output folder (one clip folder per source)")
-    importer.add_argument("--mano", metavar="DIR", help="your MANO_RIGHT.pkl and MANO_LEFT.pkl: needed for gt.npz (HOT3D's ground truth is MANO)")
-    crops = commands.add_parser("crops", help="cut each hand's crops from clip folders' videos (esther train and predict read them)")
-    crops.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with video/left.mp4, video/right.mp4 and hands/")
-    crops.add_argument("--labels", metavar="DIR", help="the teacher's labels (esther label --out): crop around the labelled hands where valid "
-                                                       "(else around gt.npz's hands; else the detectors' keypoints)")  # fmt: skip
-    crops.add_argument("--size", type=int, default=224, help="crop side in pixels, the network config's (cpu-tiny 64, cpu-small 112, paper 224)")
-    crops.add_argument("--strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
-                       help="rectification of the crops (appendix M), as esther synth --crop-strategy")  # fmt: skip
-    crops.add_argument("--overwrite", action="store_true", help="replace crops made by esther synth or with other settings")
+    synth.set_defaults(run=_synth)
+
+
+def _synth(args) -> int:
+    from .data.motion import MotionConfig
+    from .data.synth import SynthConfig, synthesize
+
+    if args.clips < 0 or args.frames < 3:
+        print("esther synth: need --clips >= 0 and --frames >= 3", file=sys.stderr)
+        return 2
+    if args.crop_size < 16:
+        print("esther synth: need --crop-size >= 16", file=sys.stderr)
+        return 2
+    try:
+        motion = MotionConfig(shape_sd=args.shape_sd, depth_range_m=tuple(args.depth_range), depth_sampling=args.depth_sampling)
+        cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset, render=args.render,
+                          crops=args.crops, vertices=args.vertices, crop_size=args.crop_size, crop_strategy=args.crop_strategy,
+                          motion_config=motion)  # fmt: skip
+        summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
+    except ValueError as err:  # settings out of range, or a folder made with other settings
+        print(f"esther synth: {err}", file=sys.stderr)
+        return 2
+    print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")
+    return 0
+
+
+def _label_parser(commands) -> None:
     label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
     label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
     label.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz, quality.json)")
@@ -94,134 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         help="fit your official MANO models, DIR/MANO_RIGHT.pkl and DIR/MANO_LEFT.pkl (or DIR/models/...), "
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
-    train = commands.add_parser("train", help="train the ESTHER network on clip folders (appendices B, C, E)")
-    train.add_argument("--config", default="cpu-small", help="model config: paper, cpu-small, cpu-tiny (default cpu-small)")
-    train.add_argument("--data", nargs="+", required=True, help="clip folders (or folders of clips) with crops and targets")
-    train.add_argument("--out", required=True, help="run folder (config.json, checkpoints/, metrics.jsonl, model/)")
-    train.add_argument("--stage", default="joint", choices=["image", "joint"], help="image: stage 1 (image encoder); joint: stage 2")
-    train.add_argument("--init", help="start from a previous run's network (e.g. stage 1's run folder)")
-    train.add_argument("--resume", action="store_true", help="continue --out from its latest checkpoint")
-    train.add_argument("--steps", type=int, default=1000)
-    train.add_argument("--batch", type=int, default=8)
-    train.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (appendix E: 2e-4)")
-    train.add_argument("--warmup", type=int, default=500, help="linear warm-up steps (appendix E: 500)")
-    train.add_argument("--ablation", help="a table-5 row (esther_jax.model.ABLATIONS)")
-    train.add_argument("--triangulated-wrist-input", action="store_true",
-                       help="the wrist query also reads the encoder's triangulated wrist (not in the paper: docs/architecture.md); "
-                       "give it to both stages")
-    train.add_argument("--frames", type=int, help="window length (the config's num_frames by default: 16)")
-    train.add_argument("--frames-apart", action="store_true",
-                       help="--stage image: draw each example's frames one by one from every window of its hand and rig (more hands per batch)")
-    train.add_argument("--targets", default="gt", choices=["gt", "labels"], help="gt.npz of synthetic clips, or the teacher's labels")
-    train.add_argument("--labels", help="the teacher's label folder (esther label --out) when --targets labels")
-    train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
-    train.add_argument("--validate-every", type=int, default=500, help="steps between validations (and one at the end)")
-    train.add_argument("--validation-windows", type=int, default=64, help="at most this many held-out windows (of the network's num_frames) per validation")
-    train.add_argument("--features", metavar="DIR", help="a feature cache for a frozen backbone: filled once (resumable), then read instead of the crops")
-    train.add_argument("--backbone-weights", metavar="FILE", help="DINOv3 weights (.pth, .npz, .safetensors) for the ViT backbone of a fresh network")
-    train.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
-                       help="mixed precision: bfloat16 compute, float32 weights, geometry and losses (default: on for the paper config)")
-    train.add_argument("--ema", type=float, metavar="DECAY", help="keep an EMA of the weights (e.g. 0.999), used for validation and the final model")
-    train.add_argument("--checkpoint-every", type=int, default=100)
-    train.add_argument("--distributed", action="store_true",
-                       help="one process of a multi-host run: jax.distributed.initialize() from the environment (JAX_COORDINATOR_ADDRESS, "
-                            "JAX_NUM_PROCESSES, JAX_PROCESS_ID, or SLURM / Open MPI / TPU auto-detection)")  # fmt: skip
-    train.add_argument("--seed", type=int, default=0)
-    predict = commands.add_parser("predict", help="a trained network's hands for clip folders, in the labels format")
-    predict.add_argument("--model", required=True, help="a run folder of esther train (or its model/ folder)")
-    predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
-    predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
-    args = parser.parse_args(argv)
-    try:  # before minutes of work: the output folder must be a writable folder (crops writes into its clips; train
-        # creates and locks its run folder at once, and removes it again when the run fails to start)
-        if args.command not in ("crops", "train"):
-            check_out_dir(args.out)
-    except ValueError as err:
-        print(f"esther {args.command}: {err}", file=sys.stderr)
-        return 2
-    from . import enable_compilation_cache
-
-    enable_compilation_cache()
-    if args.command == "demo":
-        from .demo import run
-
-        run(args.out, seed=args.seed, frames=args.frames)
-    elif args.command == "label":
-        return _label(args)
-    elif args.command == "detect":
-        return _detect(args)
-    elif args.command == "import-hot3d":
-        return _import_hot3d(args)
-    elif args.command == "crops":
-        return _crops(args)
-    elif args.command == "synth":
-        from .data.motion import MotionConfig
-        from .data.synth import SynthConfig, synthesize
-
-        if args.clips < 0 or args.frames < 3:
-            print("esther synth: need --clips >= 0 and --frames >= 3", file=sys.stderr)
-            return 2
-        if args.crop_size < 16:
-            print("esther synth: need --crop-size >= 16", file=sys.stderr)
-            return 2
-        try:
-            motion = MotionConfig(shape_sd=args.shape_sd, depth_range_m=tuple(args.depth_range), depth_sampling=args.depth_sampling)
-            cfg = SynthConfig(num_frames=args.frames, rig=args.rig, detector_preset=args.detector_preset, render=args.render,
-                              crops=args.crops, vertices=args.vertices, crop_size=args.crop_size, crop_strategy=args.crop_strategy,
-                              motion_config=motion)  # fmt: skip
-            summary = synthesize(args.out, args.clips, cfg, seed=args.seed)
-        except ValueError as err:  # settings out of range, or a folder made with other settings
-            print(f"esther synth: {err}", file=sys.stderr)
-            return 2
-        print(f"made {summary['made']} clips, kept {summary['skipped']} finished ones, in {summary['seconds']:.1f} s: {summary['out']}")
-    elif args.command == "train":
-        return _train(args)
-    elif args.command == "predict":
-        return _predict(args)
-    elif args.command == "evaluate" and args.preset == "hot3d":
-        from .eval import evaluate_hot3d_folders
-
-        try:
-            models = _mano_models(args.mano)[0] if args.mano else None
-            result = evaluate_hot3d_folders(args.pred, args.gt, args.out, models)
-        except (OSError, ValueError) as err:
-            print(f"esther evaluate: {err}", file=sys.stderr)
-            return 2
-        print((pathlib.Path(args.out) / "table.md").read_text())
-        print(f"{len(result['per_sequence'])} hands, {len(result['missing'])} not labelled; wrote {pathlib.Path(args.out).resolve()}")
-    elif args.command == "evaluate":
-        from .eval import evaluate_folders
-
-        if args.mano:
-            print("esther evaluate: --mano is for --preset hot3d (our preset compares the labels' own joints)", file=sys.stderr)
-            return 2
-
-        try:
-            result = evaluate_folders(args.pred, args.gt, args.out, method=args.method, seed=args.seed, parameters=args.params)
-        except ValueError as err:  # bad folders or files, models that differ with --params require: say what
-            print(f"esther evaluate: {err}", file=sys.stderr)
-            return 2
-        skipped = result["parameters"]["not_compared"]
-        if skipped:
-            print(
-                f"esther evaluate: MANO parameters (pose, betas) not compared for {len(skipped)} of {result['num_hands']} "
-                f"hands, joints scored for all (list in metrics.json); first, {skipped[0]['hand']}: {skipped[0]['reason']}",
-                file=sys.stderr,
-            )
-        if result["identity_unverified"]:
-            print(
-                f"esther evaluate: {len(result['identity_unverified'])} predicted clips record no source clip (not labelled by "
-                f"esther label?), so their identity was not checked: {', '.join(result['identity_unverified'][:5])}",
-                file=sys.stderr,
-            )
-        print((pathlib.Path(args.out) / "table.md").read_text())
-        missing = result["missing_predictions"]
-        print(
-            f"{result['num_hands']} hands scored, {len(missing)} ground-truth hands with no prediction"
-            + (f" ({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})" if missing else "")
-            + f"; coverage {result['coverage']:.1%} of the on-screen ground-truth hand-frames; wrote {pathlib.Path(args.out).resolve()}"
-        )
-    return 0
+    label.set_defaults(run=_label)
 
 
 def _label(args) -> int:
@@ -269,6 +280,24 @@ def _write_label_summary(out: pathlib.Path, result: dict) -> None:
         write_json(path, {**result, "labelled": kept + result["labelled"]})
 
 
+def _detect_parser(commands) -> None:
+    detect = commands.add_parser("detect", help="stereo videos (or image folders) + rig.json -> a clip folder with 2D keypoints")
+    detect.add_argument("--left", required=True, help="the left view: a video file or a folder of images (sorted by name)")
+    detect.add_argument("--right", required=True, help="the right view, same number of frames")
+    detect.add_argument("--rig", required=True, help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
+    detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it)")
+    detect.add_argument("--detector", action="append", metavar="NAME",
+                        help="mediapipe (default; the detect extra; each image and its mirror), mediapipe:direct (the image only, "
+                             "half the time), onnx:MODEL.onnx (a YOLO-pose hand model you own) or "
+                             "vitpose:MODEL.onnx[@BOXES] (a top-down heatmap model you own, on the boxes of the detector BOXES, "
+                             "default mediapipe); repeat for several detectors (the D axis of keypoints.npz)")  # fmt: skip
+    detect.add_argument("--fps", type=float, help="frame rate (read from the videos when omitted; needed for image folders)")
+    detect.add_argument("--rectify", default="offbb120", choices=["offbb120", "offbb90", "offbb150"],
+                        help="fisheye views are undistorted to this wide pinhole for detection (appendix M), keypoints mapped back")  # fmt: skip
+    detect.add_argument("--videos", default="link", choices=["link", "copy", "encode"], help="how the clip's video/*.mp4 are made (image folders: encoded)")
+    detect.set_defaults(run=_detect)
+
+
 def _detect(args) -> int:
     from .clips import ClipFormatError
     from .detect import DetectorUnavailable, detect_clip
@@ -285,6 +314,16 @@ def _detect(args) -> int:
         print(f"{name}: hands in {frames} frames; {len(tracks)} tracks" + (f" ({dropped} dropped: a side already taken)" if dropped else ""))
     print(f"sides: {', '.join(report['sides']) or 'none'} -> {pathlib.Path(args.out).resolve()} (next: esther label {args.out} --out LABELS)")
     return 0
+
+
+def _import_hot3d_parser(commands) -> None:
+    importer = commands.add_parser(
+        "import-hot3d", help="HOT3D sequences or HOT3D-Clips tars -> clip folders (calibration, head motion, boxes, MANO ground truth)"
+    )
+    importer.add_argument("sources", nargs="+", help="per-sequence export folders (metadata.json, mano_hand_pose_trajectory.jsonl, ...) or clip tars")
+    importer.add_argument("--out", required=True, help="output folder (one clip folder per source)")
+    importer.add_argument("--mano", metavar="DIR", help="your MANO_RIGHT.pkl and MANO_LEFT.pkl: needed for gt.npz (HOT3D's ground truth is MANO)")
+    importer.set_defaults(run=_import_hot3d)
 
 
 def _import_hot3d(args) -> int:
@@ -337,6 +376,45 @@ def _initialize_distributed() -> None:
     jax.distributed.initialize(**kwargs)
 
 
+def _train_parser(commands) -> None:
+    from .model.config import ModelConfig
+    from .train.data import TARGET_KINDS, DataConfig
+    from .train.losses import STAGES
+    from .train.loop import TrainConfig
+
+    train = commands.add_parser("train", help="train the ESTHER network on clip folders (appendices B, C, E)")
+    train.add_argument("--config", default="cpu-small", help="model config: paper, cpu-small, cpu-tiny (default cpu-small)")
+    train.add_argument("--data", nargs="+", required=True, help="clip folders (or folders of clips) with crops and targets")
+    train.add_argument("--out", required=True, help="run folder (config.json, checkpoints/, metrics.jsonl, model/)")
+    train.add_argument("--init", help="start from a previous run's network (e.g. stage 1's run folder)")
+    train.add_argument("--resume", action="store_true", help="continue --out from its latest checkpoint")
+    train.add_argument("--val", nargs="+", help="held-out clip folders (or folders of clips) validated during training")
+    train.add_argument("--backbone-weights", metavar="FILE", help="DINOv3 weights (.pth, .npz, .safetensors) for the ViT backbone of a fresh network")
+    train.add_argument("--distributed", action="store_true",
+                       help="one process of a multi-host run: jax.distributed.initialize() from the environment (JAX_COORDINATOR_ADDRESS, "
+                            "JAX_NUM_PROCESSES, JAX_PROCESS_ID, or SLURM / Open MPI / TPU auto-detection)")  # fmt: skip
+    model = train.add_argument_group("network (the named --config, changed by these)")
+    model.add_argument("--ablation", help="a table-5 row (esther_jax.model.ABLATIONS)")
+    _config_flags(model, ModelConfig, {
+        "num_frames": {"flag": "--frames", "default": None, "help": f"window length (the config's num_frames by default: {ModelConfig.num_frames})"},
+        "triangulated_wrist_input": {"help": "the wrist query also reads the encoder's triangulated wrist (not in the paper: "
+                                             "docs/architecture.md); give it to both stages"},
+    })  # fmt: skip
+    model.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
+                       help="mixed precision: bfloat16 compute, float32 weights, geometry and losses (default: on for the paper config)")
+    _config_flags(train.add_argument_group("training (esther_jax.train.TrainConfig)"), TrainConfig, {
+        "stage": {"choices": list(STAGES)}, "steps": {}, "batch": {}, "learning_rate": {"flag": "--lr"}, "warmup_steps": {"flag": "--warmup"},
+        "seed": {}, "ema_decay": {"flag": "--ema", "metavar": "DECAY"}, "checkpoint_every": {}, "validate_every": {}, "validation_windows": {},
+        "frames_apart": {"help": "--stage image: draw each example's frames one by one from every window of its hand and rig (more hands per batch)"},
+    })  # fmt: skip
+    _config_flags(train.add_argument_group("data (esther_jax.train.DataConfig)"), DataConfig, {
+        "targets": {"choices": list(TARGET_KINDS), "help": "gt.npz of synthetic clips, or the teacher's labels"},
+        "labels": {"help": "the teacher's label folder (esther label --out) when --targets labels"},
+        "features": {"metavar": "DIR", "help": "a feature cache for a frozen backbone: filled once (resumable), then read instead of the crops"},
+    })  # fmt: skip
+    train.set_defaults(run=_train)
+
+
 def _train(args) -> int:
     if args.distributed:
         _initialize_distributed()
@@ -348,17 +426,11 @@ def _train(args) -> int:
     if data is None or (args.val and val is None):
         return 2
     try:
-        overrides = {"num_frames": args.frames} if args.frames else {}
-        if args.triangulated_wrist_input:
-            overrides["triangulated_wrist_input"] = True
+        overrides = {k: v for k, v in _config_values(args, M.ModelConfig).items() if v}  # the switches given: the named config's otherwise
         model_cfg = M.config(args.config, ablation=args.ablation, **overrides)
-        cfg = train.TrainConfig(stage=args.stage, steps=args.steps, batch=args.batch, learning_rate=args.lr,
-                                warmup_steps=args.warmup, seed=args.seed, checkpoint_every=args.checkpoint_every, ema_decay=args.ema,
-                                compute_dtype="bfloat16" if (args.bf16 if args.bf16 is not None else args.config == "paper") else "float32",
-                                validate_every=args.validate_every, validation_windows=args.validation_windows,
-                                frames_apart=args.frames_apart)  # fmt: skip
-        data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, targets=args.targets, labels=args.labels,
-                                    features=args.features)  # fmt: skip
+        bf16 = args.bf16 if args.bf16 is not None else args.config == "paper"
+        cfg = train.TrainConfig(**_config_values(args, train.TrainConfig), compute_dtype="bfloat16" if bf16 else "float32")
+        data_cfg = train.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, **_config_values(args, train.DataConfig))
         summary = train.train(args.out, data, model_cfg, cfg, data_cfg=data_cfg, val_dirs=val, init=args.init, resume=args.resume,
                               backbone_weights=args.backbone_weights)  # fmt: skip
     except train.NonFiniteLoss as err:
@@ -379,6 +451,18 @@ def _train(args) -> int:
     return 0
 
 
+def _crops_parser(commands) -> None:
+    crops = commands.add_parser("crops", help="cut each hand's crops from clip folders' videos (esther train and predict read them)")
+    crops.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with video/left.mp4, video/right.mp4 and hands/")
+    crops.add_argument("--labels", metavar="DIR", help="the teacher's labels (esther label --out): crop around the labelled hands where valid "
+                                                       "(else around gt.npz's hands; else the detectors' keypoints)")  # fmt: skip
+    crops.add_argument("--size", type=int, default=224, help="crop side in pixels, the network config's (cpu-tiny 64, cpu-small 112, paper 224)")
+    crops.add_argument("--strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
+                       help="rectification of the crops (appendix M), as esther synth --crop-strategy")  # fmt: skip
+    crops.add_argument("--overwrite", action="store_true", help="replace crops made by esther synth or with other settings")
+    crops.set_defaults(run=_crops)
+
+
 def _crops(args) -> int:
     from .data.video_crops import CropConfig, crop_clips
 
@@ -396,6 +480,14 @@ def _crops(args) -> int:
     print(f"cropped {hands} hands of {len(result['cropped'])} clips ({args.size} px, {args.strategy}), "
           f"{len(result['skipped'])} already done, failed {len(result['failed'])}")
     return 1 if result["failed"] else 0
+
+
+def _predict_parser(commands) -> None:
+    predict = commands.add_parser("predict", help="a trained network's hands for clip folders, in the labels format")
+    predict.add_argument("--model", required=True, help="a run folder of esther train (or its model/ folder)")
+    predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
+    predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
+    predict.set_defaults(run=_predict)
 
 
 def _predict(args) -> int:
@@ -437,6 +529,11 @@ def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:
         fixed = " (x shapedirs negated: the official left model's sign bug, smplx#48)" if bool(models[side].left_shapedirs_fixed) else ""
         print(f"{side} hand: {path} = MANO model {mano.model_id(models[side])}{fixed}")
     return models, sources
+
+
+_COMMANDS = (_demo_parser, _evaluate_parser, _synth_parser, _detect_parser, _import_hot3d_parser, _crops_parser, _label_parser,
+             _train_parser, _predict_parser)  # fmt: skip
+"""The commands in `esther --help`'s order: each function adds one's parser."""
 
 
 if __name__ == "__main__":

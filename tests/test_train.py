@@ -396,6 +396,25 @@ RUN_FRAMES = 8  # anchors every 2 frames: the other frames can be token-masked
 RUN_BATCH = 4  # splits over the four devices of the data-parallel test, which shares the run tests' compiled step
 
 
+def test_hooks_run_every_n_steps_in_order_and_all_when_forced(tmp_path):
+    """Hooks: each hook every `every` steps, in the order added, all of them at a forced
+    step; the non-finite guard names the step (0-based, as the batch's) and the terms."""
+    state = train.TrainState(jnp.zeros((), jnp.int32), M.ESTHER(CFG, key=jax.random.key(0)), (), None)
+    seen = []
+    hooks = train.Hooks()
+    hooks.add(lambda info: seen.append(("a", info.step)))
+    hooks.add(lambda info: seen.append(("b", info.step)), every=2)
+    with pytest.raises(ValueError, match="every=0"):
+        hooks.add(print, every=0)
+    for step in (1, 2, 3):
+        hooks.run(train.StepInfo(step, state, {"loss": 1.0}, 0.1), force=step == 3)
+    assert seen == [("a", 1), ("a", 2), ("b", 2), ("a", 3), ("b", 3)]
+    guard = train.nonfinite_guard(tmp_path)
+    guard(train.StepInfo(1, state, {"loss": 1.0, "loss/joints": 1.0}, 0.1))
+    with pytest.raises(train.NonFiniteLoss, match=r"step 4: the loss is inf \(non-finite terms: joints\)"):
+        guard(train.StepInfo(5, state, {"loss": math.inf, "loss/joints": math.inf, "loss/two_d": 1.0}, 0.1))
+
+
 def test_a_run_trains_stops_on_nan_and_resumes_bit_for_bit(synth_clip, tmp_path, monkeypatch):
     """Run A trains 4 steps: every term finite, the motion term active, every part of the
     network moved. Run B meets a NaN target at step 3: it stops, names the step and the

@@ -1,8 +1,9 @@
 """Training the ESTHER network (appendices B, C, E): the losses term by term
 (`losses`), token masking and image augmentation (`masking`), windows of clip folders
 and reproducible batches (`data`), cached features of a frozen backbone (`features`),
-the optimiser, the jitted step, data parallelism and run folders that resume bit for bit
-(`loop`), and scoring on held-out windows (`validation`)."""
+the optimiser, the jitted step, the steps as a generator with hooks (`StepInfo`,
+`Hooks`), data parallelism and run folders that resume bit for bit (`loop`), and
+scoring on held-out windows (`validation`)."""
 
 from .data import DataConfig as DataConfig
 from .data import Window as Window
@@ -33,7 +34,9 @@ from .masking import dropped_views as dropped_views
 from .masking import example_key as example_key
 from .masking import kept_views as kept_views
 from .masking import motion_mask as motion_mask
+from .loop import Hooks as Hooks
 from .loop import NonFiniteLoss as NonFiniteLoss
+from .loop import StepInfo as StepInfo
 from .loop import TrainConfig as TrainConfig
 from .loop import Trainer as Trainer
 from .loop import TrainState as TrainState
@@ -43,6 +46,7 @@ from .loop import decay_mask as decay_mask
 from .loop import learning_rate_schedule as learning_rate_schedule
 from .loop import load_checkpoint as load_checkpoint
 from .loop import make_optimizer as make_optimizer
+from .loop import nonfinite_guard as nonfinite_guard
 from .loop import save_checkpoint as save_checkpoint
 from .loop import stage_spec as stage_spec
 from .loop import train as train

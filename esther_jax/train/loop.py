@@ -9,6 +9,11 @@
 - `Trainer.step`: one jitted step holds the examples' corruption (appendix C), the
   forward pass, the losses (appendix B), the gradient, clipping, the update and the
   optional EMA of the weights.
+- `Trainer.training_steps`: the steps as a generator, one `StepInfo` (step, state, the
+  metrics on the host, seconds) per step, the next batch read while a step runs; `Hooks`
+  runs functions of it every N steps (levanter's `trainer.add_hook(fn, every=N)`), e.g.
+  `nonfinite_guard`. `train`'s loop is these two: its logging, non-finite guard,
+  validation, checkpoints and progress bar are hooks.
 - `train`: a run folder `RUN/` holding `config.json` (model, training, data, git
   revision), `index.json` (the training windows), `metrics.jsonl` (every logged step:
   each loss term, gradient norm, learning rate, clips/s), `checkpoints/step_<step, 8 digits>/`
@@ -24,6 +29,7 @@
   processes: `jax.distributed.initialize()` first, then the same code.
 """
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -32,6 +38,7 @@ import pathlib
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
@@ -56,17 +63,25 @@ class TrainConfig:
     stage: str = "joint"
     """'image' (stage 1: the image encoder under its guidance) or 'joint' (stage 2)."""
     steps: int = 1000
+    """Optimisation steps of the run (the learning rate's cosine ends at the last)."""
     batch: int = 8
+    """Windows per step (all devices and processes together)."""
     learning_rate: float = 2e-4
+    """Peak learning rate (appendix E: 2e-4)."""
     warmup_steps: int = 500
+    """Linear warm-up steps (appendix E: 500)."""
     weight_decay: float = 0.05
     """AdamW's decoupled weight decay (the paper gives none; 0.05 as in DINO-style ViT training)."""
     clip_norm: float = 1.0
+    """Global-norm gradient clipping."""
     seed: int = 0
+    """Seeds a fresh network's weights and each step's batch, masking and augmentation."""
     ema_decay: float | None = None
-    """EMA of the trainable weights (e.g. 0.999), saved beside them and used for the final model."""
+    """EMA of the trainable weights (e.g. 0.999), saved beside them and used for validation and the final model."""
     checkpoint_every: int = 100
+    """Steps between checkpoints (and one at the end)."""
     keep_checkpoints: int = 3
+    """The last this many checkpoints are kept."""
     compute_dtype: str = "float32"
     """'float32', or 'bfloat16': mixed precision, the network computed in bfloat16 from
     float32 master weights (`model.cast`), geometry, forward kinematics and losses in
@@ -218,8 +233,92 @@ class Trainer:
         clips, targets = self.shard((clips, targets))
         return _train_step(self.static, self.hand, state, clips, targets, self._settings())
 
+    def training_steps(self, state: TrainState, load: Callable[[int], tuple]) -> Iterator["StepInfo"]:
+        """The steps from `state`'s to `cfg.steps`, one `StepInfo` each (levanter's
+        `trainer.training_steps`); `load(step)` is the step's batch (this process's share,
+        `process_batch_slice`), read on a worker thread while the previous step runs. Close
+        the generator (`contextlib.closing`) when a hook may raise: the worker ends with it."""
+        start, last = int(state.step), time.perf_counter()
+        with ThreadPoolExecutor(1) as loader:
+            pending = loader.submit(load, start)
+            for step in range(start, self.cfg.steps):
+                clips, targets = pending.result()
+                state, metrics = self.step(state, clips, targets)
+                if step + 1 < self.cfg.steps:
+                    pending = loader.submit(load, step + 1)
+                values = {k: float(v) for k, v in jax.device_get(metrics).items()}  # the one wait for the device per step
+                now = time.perf_counter()
+                info = StepInfo(step + 1, state, values, now - last)
+                last = now
+                yield info
+
     def _settings(self):
         return (_step_settings(self.cfg), self.model_cfg, self._weights, self._masking, self._augment)
+
+
+@dataclasses.dataclass(frozen=True)
+class StepInfo:
+    """One optimisation step as `Trainer.training_steps` yields it and hooks see it
+    (levanter's `StepInfo`)."""
+
+    step: int
+    """Steps done: the state's step after this update (1 after the first)."""
+    state: TrainState
+    """The state after the update (a non-finite loss's too: `nonfinite_guard` stops there)."""
+    metrics: dict[str, float]
+    """The step's metrics on the host: loss, loss/<term>, grad_norm, grad_norm/<part>, learning_rate."""
+    seconds: float
+    """Wall time since the previous step's metrics arrived (so its hooks count: validations,
+    checkpoints), or since the steps began (the first step's compilation and batch)."""
+
+    @property
+    def loss(self) -> float:
+        return self.metrics["loss"]
+
+
+class Hooks:
+    """Functions of a `StepInfo` run after steps in the order they were added, each every
+    `every` steps (`info.step % every == 0`) and at any step run with `force=True` (a run's
+    last): levanter's `trainer.add_hook(fn, every=N)`.
+
+        hooks = Hooks()
+        hooks.add(nonfinite_guard(run))
+        hooks.add(lambda info: print(info.step, info.loss), every=10)
+        with contextlib.closing(trainer.training_steps(state, load)) as steps:
+            for info in steps:
+                hooks.run(info, force=info.step == cfg.steps)
+    """
+
+    def __init__(self):
+        self._hooks: list[tuple[Callable[[StepInfo], None], int]] = []
+
+    def add(self, fn: Callable[[StepInfo], None], *, every: int = 1) -> Callable[[StepInfo], None]:
+        if every < 1:
+            raise ValueError(f"a hook runs every 1 or more steps, got every={every}")
+        self._hooks.append((fn, every))
+        return fn
+
+    def run(self, info: StepInfo, *, force: bool = False) -> None:
+        for fn, every in self._hooks:
+            if force or info.step % every == 0:
+                fn(info)
+
+
+def nonfinite_guard(run: pathlib.Path) -> Callable[[StepInfo], None]:
+    """A hook (every step, added first) raising `NonFiniteLoss` at a NaN or infinite loss,
+    naming the step, the terms and the checkpoints of `run` (before any other hook has
+    logged or saved the step)."""
+
+    def guard(info: StepInfo) -> None:
+        values = info.metrics
+        if not np.isfinite(values["loss"]):
+            bad = sorted(k.split("/", 1)[1] for k, v in values.items() if k.startswith("loss/") and not np.isfinite(v))
+            raise NonFiniteLoss(
+                f"step {info.step - 1}: the loss is {values['loss']} (non-finite terms: {', '.join(bad) or 'none; the weighted sum overflowed'}); "
+                f"the run stopped, its last good checkpoint is kept in {run / CHECKPOINTS}"
+            )
+
+    return guard
 
 
 def _step_settings(cfg: TrainConfig) -> TrainConfig:
@@ -400,65 +499,25 @@ def _train_run(
     mesh: jax.sharding.Mesh | None,
     backbone_weights: str | pathlib.Path | None,
 ) -> dict:
-    """`train`'s body (process 0 holds the run folder's lock)."""
+    """`train`'s body (process 0 holds the run folder's lock): the run set up, then
+    `Trainer.training_steps` with one hook per duty (`Hooks`), then the final network."""
     from tqdm import tqdm
 
     data_cfg = data_cfg or data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
-    if data_cfg.frames > model_cfg.num_frames or data_cfg.crop_size != model_cfg.crop_size:
-        raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
-                         f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
-    if data_cfg.targets == "labels" and not pathlib.Path(data_cfg.labels).is_dir():
-        raise ValueError(f"the labels folder {data_cfg.labels} does not exist (esther label --out)")
-    record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
-    if backbone_weights is not None:
-        if init is not None:
-            raise ValueError("--backbone-weights starts a fresh network; --init brings its own backbone")
-        record["backbone_weights"] = {"path": str(backbone_weights), "sha256": file_sha256(backbone_weights)}
     main = jax.process_index() == 0
-    mesh = data_mesh() if mesh is None and jax.device_count() > 1 else mesh
-    config_path, index_path, metrics_path, val_path = run / "config.json", run / "index.json", run / "metrics.jsonl", run / "validation.jsonl"
-    if config_path.exists():
-        if not resume and main:  # (the other processes of a new run may see process 0's config.json already)
-            raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
-        previous = read_json(config_path)
-        now = {part: json.loads(json.dumps(record[part])) for part in ("model", "train", "data")}
-        differs = [f"{part}.{key} was {_recorded(previous, part, key)!r}, now {now[part].get(key)!r}"
-                   for part in now for key in sorted(set(now[part]) | set(previous.get(part, {})))
-                   if _recorded(previous, part, key) != now[part].get(key)]  # fmt: skip
-        if differs:
-            steps = any(d.startswith("train.steps") for d in differs)
-            hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if steps else ""
-            raise ValueError(f"{run} was started with other settings ({'; '.join(differs)}): resume with the same settings{hint}")
-        windows, _ = data_lib.load_index(index_path)
-        new_run = False
-    else:
-        windows = data_lib.build_index(clip_dirs, data_cfg)
-        if not windows:
-            raise ValueError(f"no training window in {len(clip_dirs)} clip folders (need crops/<side>.npz and targets, "
-                             f"at least {data_cfg.frames} frames)")  # fmt: skip
-        new_run = True
-
+    record, windows, new_run = _open_run(run, clip_dirs, model_cfg, cfg, data_cfg, init, resume, backbone_weights, main)
     hand = mano.load_builtin("right")
-    net = M.ESTHER(model_cfg, key=jax.random.key(cfg.seed))
-    if init is not None:
-        net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
-        if net.config != model_cfg:
-            differs = [f"{f.name} {getattr(net.config, f.name)!r} vs {getattr(model_cfg, f.name)!r}"
-                       for f in dataclasses.fields(model_cfg) if getattr(net.config, f.name) != getattr(model_cfg, f.name)]  # fmt: skip
-            raise ValueError(f"--init {init} is another network than this run trains ({'; '.join(differs)})")
-    if backbone_weights is not None:
-        if not isinstance(net.backbone, M.ViT):
-            raise ValueError(f"--backbone-weights loads DINOv3 weights into a ViT backbone; {model_cfg.name} has {model_cfg.backbone}")
-        net = eqx.tree_at(lambda m: m.backbone, net, M.load_dinov3_weights(net.backbone, backbone_weights))
+    net = _initial_network(model_cfg, cfg, init, backbone_weights)
     if data_cfg.features:
         if net.backbone is None or not model_cfg.freeze_backbone:
             raise ValueError(f"cached features need a frozen backbone (the paper config); {model_cfg.name}'s is trained")
         precompute_features(net.backbone, list(clip_dirs) + list(val_dirs or []), model_cfg.crop_size, data_cfg.features, progress=progress and main)
-    trainer = Trainer(net, cfg, hand, mesh=mesh)
+    trainer = Trainer(net, cfg, hand, mesh=data_mesh() if mesh is None and jax.device_count() > 1 else mesh)
     state = trainer.init()
+    metrics_path, val_path = run / "metrics.jsonl", run / "validation.jsonl"
     if new_run and main:  # written once every setting is checked: a run that fails to set up can be started again
-        data_lib.save_index(index_path, windows, data_cfg)
-        write_json(config_path, record)
+        data_lib.save_index(run / "index.json", windows, data_cfg)
+        write_json(run / "config.json", record)
     restored = load_checkpoint(run, _host(state)) if resume else None
     if restored is not None:
         state = trainer.place(restored)
@@ -470,59 +529,140 @@ def _train_run(
     val_cfg = dataclasses.replace(data_cfg, stride=data_cfg.frames)  # non-overlapping held-out windows
     val_windows = _validation_windows(val_dirs, val_cfg, cfg.validation_windows) if val_dirs else []
 
-    def validate(step: int, state: TrainState, log) -> None:
-        net = trainer.network(state, ema=cfg.ema_decay is not None)
-        for views, dropped in (("both", None), ("right dropped", 1)):
-            scores = evaluate_windows(net, val_windows, val_cfg, hand_model=hand, batch=cfg.batch, view_dropped=dropped)
-            if main:
-                log.write(json.dumps({"step": step, "views": views, **scores}) + "\n")
-        log.flush()
-
-    t0, last = time.perf_counter(), time.perf_counter()
+    t0 = time.perf_counter()
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.stage}", unit="step", disable=not (progress and main))
     bar.set_postfix_str("compiling the step (the first one waits for it)")
-    # The batch of the next step is read on a worker thread while the current step runs.
+    load = functools.partial(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, part=share, frames_apart=cfg.frames_apart)
     logs = (open(metrics_path, "a"), open(val_path, "a")) if main else (open(os.devnull, "w"), open(os.devnull, "w"))
-    with logs[0] as log, logs[1] as val_log, ThreadPoolExecutor(1) as loader:
-        load = functools.partial(data_lib.load_batch, windows, data_cfg, cfg.batch, cfg.seed, part=share, frames_apart=cfg.frames_apart)
-        fetch = lambda s: loader.submit(load, step=s)  # noqa: E731
-        pending = fetch(start)
-        for step in range(start, cfg.steps):
-            clips_b, targets_b = pending.result()
-            new_state, metrics = trainer.step(state, clips_b, targets_b)
-            if step + 1 < cfg.steps:
-                pending = fetch(step + 1)
-            values = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            if not np.isfinite(values["loss"]):
-                bad = sorted(k.split("/", 1)[1] for k, v in values.items() if k.startswith("loss/") and not np.isfinite(v))
-                raise NonFiniteLoss(
-                    f"step {step}: the loss is {values['loss']} (non-finite terms: {', '.join(bad) or 'none; the weighted sum overflowed'}); "
-                    f"the run stopped, its last good checkpoint is kept in {run / CHECKPOINTS}"
-                )
-            state = new_state
-            now = time.perf_counter()
-            if (step + 1) % log_every == 0 or step + 1 == cfg.steps:
-                entry = {"step": step + 1, **values, "clips_per_s": cfg.batch / max(now - last, 1e-9)}
-                log.write(json.dumps(entry) + "\n")
-                log.flush()
-            last = now
-            if val_windows and ((step + 1) % cfg.validate_every == 0 or step + 1 == cfg.steps):
-                validate(step + 1, state, val_log)
-            if main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
-                save_checkpoint(run, _host(state), cfg.keep_checkpoints)
-            bar.update(1)
-            bar.set_postfix(loss=f"{values['loss']:.4f}")
+    with logs[0] as log, logs[1] as val_log, contextlib.closing(trainer.training_steps(state, load)) as steps:
+        hooks = Hooks()  # in this order: a step is checked, logged, validated, saved, then shown
+        hooks.add(nonfinite_guard(run))
+        hooks.add(_metrics_logger(log, cfg.batch), every=log_every)
+        if val_windows:  # (every process runs the validation; process 0 writes it)
+            hooks.add(_validator(trainer, val_windows, val_cfg, hand, val_log, main), every=cfg.validate_every)
+        if main:
+            hooks.add(_checkpointer(run, cfg.keep_checkpoints), every=cfg.checkpoint_every)
+        hooks.add(_progress(bar))
+        for info in steps:  # the run's last step runs every hook
+            hooks.run(info, force=info.step == cfg.steps)
+            state = info.state
     bar.close()
     summary = {"run": str(run), "steps": int(state.step), "resumed_from": start, "seconds": time.perf_counter() - t0,
                "model": str(run / "model"), "curves": str(run / "curves.png")}  # fmt: skip
-    if not main:
-        return summary
-    M.save(run / "model", _host(trainer.network(state, ema=cfg.ema_decay is not None)))
-    plot_learning_curves(_read_jsonl(metrics_path), _read_jsonl(val_path), run / "curves.png")
-    final_rows = [row for row in _read_jsonl(val_path) if row["step"] == int(state.step)]
-    if final_rows:
-        summary["validation"] = {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in final_rows}
+    if main:
+        summary.update(_finish_run(run, trainer, state))
     return summary
+
+
+def _open_run(run: pathlib.Path, clip_dirs, model_cfg: M.ModelConfig, cfg: TrainConfig, data_cfg: data_lib.DataConfig,
+              init, resume: bool, backbone_weights, main: bool) -> tuple[dict, list[data_lib.Window], bool]:  # fmt: skip
+    """The run's record (`config.json`'s content), its training windows and whether it is
+    new: a new run's windows are indexed, a resumed one's read back after its recorded
+    settings are checked against these."""
+    if data_cfg.frames > model_cfg.num_frames or data_cfg.crop_size != model_cfg.crop_size:
+        raise ValueError(f"data windows of {data_cfg.frames} frames at {data_cfg.crop_size} px do not fit {model_cfg.name} "
+                         f"({model_cfg.num_frames} frames, {model_cfg.crop_size} px)")  # fmt: skip
+    if data_cfg.targets == "labels" and not pathlib.Path(data_cfg.labels).is_dir():
+        raise ValueError(f"the labels folder {data_cfg.labels} does not exist (esther label --out)")
+    record = _run_record(model_cfg, cfg, data_cfg, None if init is None else str(init))
+    if backbone_weights is not None:
+        if init is not None:
+            raise ValueError("--backbone-weights starts a fresh network; --init brings its own backbone")
+        record["backbone_weights"] = {"path": str(backbone_weights), "sha256": file_sha256(backbone_weights)}
+    config_path = run / "config.json"
+    if not config_path.exists():
+        windows = data_lib.build_index(clip_dirs, data_cfg)
+        if not windows:
+            raise ValueError(f"no training window in {len(clip_dirs)} clip folders (need crops/<side>.npz and targets, "
+                             f"at least {data_cfg.frames} frames)")  # fmt: skip
+        return record, windows, True
+    if not resume and main:  # (the other processes of a new run may see process 0's config.json already)
+        raise ValueError(f"{run} already holds a run: resume it (--resume) or choose another --out")
+    previous = read_json(config_path)
+    now = {part: json.loads(json.dumps(record[part])) for part in ("model", "train", "data")}
+    differs = [f"{part}.{key} was {_recorded(previous, part, key)!r}, now {now[part].get(key)!r}"
+               for part in now for key in sorted(set(now[part]) | set(previous.get(part, {})))
+               if _recorded(previous, part, key) != now[part].get(key)]  # fmt: skip
+    if differs:
+        steps = any(d.startswith("train.steps") for d in differs)
+        hint = " (the learning-rate schedule spans the steps: to train on, start a new run with --init)" if steps else ""
+        raise ValueError(f"{run} was started with other settings ({'; '.join(differs)}): resume with the same settings{hint}")
+    windows, _ = data_lib.load_index(run / "index.json")
+    return record, windows, False
+
+
+def _initial_network(model_cfg: M.ModelConfig, cfg: TrainConfig, init, backbone_weights) -> M.ESTHER:
+    """A fresh network (seeded by `cfg.seed`, with DINOv3 `backbone_weights` if given), or
+    the network of `init` (a run folder or a model folder), which must be `model_cfg`'s."""
+    net = M.ESTHER(model_cfg, key=jax.random.key(cfg.seed))
+    if init is not None:
+        net = M.load(pathlib.Path(init) / "model") if (pathlib.Path(init) / "model").is_dir() else M.load(init)
+        if net.config != model_cfg:
+            differs = [f"{f.name} {getattr(net.config, f.name)!r} vs {getattr(model_cfg, f.name)!r}"
+                       for f in dataclasses.fields(model_cfg) if getattr(net.config, f.name) != getattr(model_cfg, f.name)]  # fmt: skip
+            raise ValueError(f"--init {init} is another network than this run trains ({'; '.join(differs)})")
+    if backbone_weights is not None:
+        if not isinstance(net.backbone, M.ViT):
+            raise ValueError(f"--backbone-weights loads DINOv3 weights into a ViT backbone; {model_cfg.name} has {model_cfg.backbone}")
+        net = eqx.tree_at(lambda m: m.backbone, net, M.load_dinov3_weights(net.backbone, backbone_weights))
+    return net
+
+
+def _finish_run(run: pathlib.Path, trainer: Trainer, state: TrainState) -> dict:
+    """After the steps (also of a run resumed at its end): the final network (the EMA
+    weights when kept) into `run/model`, the learning curves of the logs into
+    `run/curves.png`; returns the last step's validation scores per views, if any."""
+    M.save(run / "model", _host(trainer.network(state, ema=trainer.cfg.ema_decay is not None)))
+    metrics, validation = _read_jsonl(run / "metrics.jsonl"), _read_jsonl(run / "validation.jsonl")
+    plot_learning_curves(metrics, validation, run / "curves.png")
+    final_rows = [row for row in validation if row["step"] == int(state.step)]
+    if not final_rows:
+        return {}
+    return {"validation": {row["views"]: {k: v for k, v in row.items() if k not in ("step", "views")} for row in final_rows}}
+
+
+# the hooks of a run (`_train_run`): each a function of a `StepInfo`
+
+def _metrics_logger(log, batch: int) -> Callable[[StepInfo], None]:
+    """`metrics.jsonl`'s line of a step: its metrics and clips/s (over the step's interval)."""
+
+    def write(info: StepInfo) -> None:
+        log.write(json.dumps({"step": info.step, **info.metrics, "clips_per_s": batch / max(info.seconds, 1e-9)}) + "\n")
+        log.flush()
+
+    return write
+
+
+def _validator(trainer: Trainer, windows: list[data_lib.Window], val_cfg: data_lib.DataConfig, hand: mano.ManoModel, log,
+               main: bool) -> Callable[[StepInfo], None]:  # fmt: skip
+    """`validation.jsonl`'s two lines of a step: the held-out windows scored with both
+    views and with the right view dropped (the EMA weights when kept)."""
+    cfg = trainer.cfg
+
+    def validate(info: StepInfo) -> None:
+        net = trainer.network(info.state, ema=cfg.ema_decay is not None)
+        for views, dropped in (("both", None), ("right dropped", 1)):
+            scores = evaluate_windows(net, windows, val_cfg, hand_model=hand, batch=cfg.batch, view_dropped=dropped)
+            if main:
+                log.write(json.dumps({"step": info.step, "views": views, **scores}) + "\n")
+        log.flush()
+
+    return validate
+
+
+def _checkpointer(run: pathlib.Path, keep: int) -> Callable[[StepInfo], None]:
+    """The step's checkpoint (`save_checkpoint`, the last `keep` kept)."""
+    return lambda info: save_checkpoint(run, _host(info.state), keep)
+
+
+def _progress(bar) -> Callable[[StepInfo], None]:
+    """The progress bar one step on, showing the step's loss."""
+
+    def show(info: StepInfo) -> None:
+        bar.update(1)
+        bar.set_postfix(loss=f"{info.loss:.4f}")
+
+    return show
 
 
 def train_stages(
@@ -594,6 +734,7 @@ def _truncate_metrics(path: pathlib.Path, step: int) -> None:
 
 
 __all__ = [
-    "NonFiniteLoss", "TrainConfig", "TrainState", "Trainer", "data_mesh", "decay_mask", "process_batch_slice",
-    "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train",
+    "Hooks", "NonFiniteLoss", "StepInfo", "TrainConfig", "TrainState", "Trainer", "data_mesh", "decay_mask", "nonfinite_guard",
+    "process_batch_slice", "learning_rate_schedule", "load_checkpoint", "make_optimizer", "save_checkpoint", "stage_spec", "train",
+    "train_stages",
 ]  # fmt: skip
