@@ -27,7 +27,8 @@
 import time
 
 import esther_jax
-from esther_jax.eval import CORRUPTIONS, studies
+from esther_jax import studies
+from esther_jax.eval import CORRUPTIONS
 from esther_jax.eval.reports import plot_metric_vs_condition
 
 esther_jax.enable_compilation_cache()  # compiled programs are kept between runs (~/.cache/esther_jax)
