@@ -32,6 +32,7 @@ import zipfile
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .tflite import TFLiteGraph, load_tflite
@@ -112,6 +113,24 @@ class MediaPipeHand(eqx.Module):
             raise ValueError(f"image must be (S, S, 3) with S a multiple of 32; got {image.shape}")
         values = self.graph.tensor_values(image, names=[STAGES[s][0] for s in stages], strict=False)
         return {s: values[STAGES[s][0]] for s in stages}
+
+
+def upright_crop(image: np.ndarray, keypoints_px: np.ndarray, size: int = INPUT_SIZE, margin: float = 1.5) -> np.ndarray:
+    """A square crop of an RGB uint8 image as the network expects it: centred on the 21
+    keypoints' box, `margin` times its longer side, rotated so that the wrist -> middle
+    knuckle direction points up (as MediaPipe rotates its crops); float32 in [0, 1].
+    Keypoints are (x, y) pixels, 0 at the image's left / top edge."""
+    import cv2
+
+    keypoints_px = np.asarray(keypoints_px, np.float64)[:, :2]
+    centre = 0.5 * (keypoints_px.min(axis=0) + keypoints_px.max(axis=0))
+    up = keypoints_px[9] - keypoints_px[0]
+    angle = np.arctan2(up[0], -up[1])
+    scale = margin * np.ptp(keypoints_px, axis=0).max() / size
+    R_image_crop = scale * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    A_image_crop = np.concatenate([R_image_crop, (centre - R_image_crop @ [size / 2, size / 2])[:, None]], axis=1)
+    crop = cv2.warpAffine(image, A_image_crop, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return crop.astype(np.float32) / 255.0
 
 
 def bundled_hand_landmarker() -> pathlib.Path:
