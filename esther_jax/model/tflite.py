@@ -515,6 +515,7 @@ def load_tflite(data: bytes | str | pathlib.Path) -> TFLiteGraph:
         return raw[i][0] if i in raw else None
 
     params: dict[str, np.ndarray] = {}
+    owner: dict[str, int] = {}  # weight name -> its tensor
     nodes = []
     for k, op in enumerate(ops):
         name = opcode(op)
@@ -522,6 +523,8 @@ def load_tflite(data: bytes | str | pathlib.Path) -> TFLiteGraph:
         outs = tuple(int(j) for j in op.OutputsAsNumpy())
         where = f"operator {k} ({name}, output {tensors[outs[0]].name!r})"
         if name == "DEQUANTIZE" and ins[0] in raw:  # a stored weight: fold
+            if owner.setdefault(tensors[outs[0]].name, outs[0]) != outs[0]:
+                raise UnsupportedTFLiteGraph(f"two constant tensors are called {tensors[outs[0]].name!r}; weights are kept by name")
             params[tensors[outs[0]].name] = _dequantised(raw[ins[0]][0], raw[ins[0]][1], tensors[ins[0]].dtype, where)
             continue
         options = _node_options(tfl, op, name, const, ins, where)
@@ -530,7 +533,9 @@ def load_tflite(data: bytes | str | pathlib.Path) -> TFLiteGraph:
             if position in _STATIC_INPUTS.get(name, ()):
                 continue
             if j in raw:
-                params.setdefault(tensors[j].name, _dequantised(raw[j][0], raw[j][1], tensors[j].dtype, where))
+                if owner.setdefault(tensors[j].name, j) != j:
+                    raise UnsupportedTFLiteGraph(f"two constant tensors are called {tensors[j].name!r}; weights are kept by name")
+                params[tensors[j].name] = _dequantised(raw[j][0], raw[j][1], tensors[j].dtype, where)
             elif j >= 0 and not tensors[j].dtype.startswith("FLOAT"):
                 raise UnsupportedTFLiteGraph(f"{where}: quantised or integer activation {tensors[j].name!r} ({tensors[j].dtype}); convert a float model")
             runtime.append(j)
