@@ -8,7 +8,8 @@ Public names: `ESTHER`, `ModelConfig`, `config`, `CONFIGS`, `ABLATIONS`, `BACKBO
 the backbones (`ViT`, `ConvStem`, `make_backbone`, `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
 `MotionEncoder`, `FusionDecoder`) and their outputs (`ImageEvidence`,
 `MotionEvidence`, `Decoded`), `evidence_statistics`, `decode_kinematic_tree`,
-`depth_bin_centres`.
+`depth_bin_centres`; MediaPipe's pretrained hand network (`load_mediapipe_hand`,
+`MediaPipeHand`, `HandLandmarks`) and the TFLite converter behind it (`load_tflite`, `TFLiteGraph`).
 """
 
 from .backbones import ConvStem as ConvStem
@@ -49,3 +50,8 @@ from .motion_encoder import MotionEvidence as MotionEvidence
 from .stereo_encoder import ImageEvidence as ImageEvidence
 from .stereo_encoder import StereoImageEncoder as StereoImageEncoder
 from .stereo_encoder import depth_bin_centres as depth_bin_centres
+from .mediapipe_hand import HandLandmarks as HandLandmarks
+from .mediapipe_hand import MediaPipeHand as MediaPipeHand
+from .mediapipe_hand import load_mediapipe_hand as load_mediapipe_hand
+from .tflite import TFLiteGraph as TFLiteGraph
+from .tflite import load_tflite as load_tflite
