@@ -377,13 +377,14 @@ def _initialize_distributed() -> None:
 
 
 def _train_parser(commands) -> None:
-    from .model.config import ModelConfig
+    from .model.config import BACKBONES, CONFIGS, ModelConfig
     from .train.data import TARGET_KINDS, DataConfig
     from .train.losses import STAGES
     from .train.loop import TrainConfig
 
     train = commands.add_parser("train", help="train the ESTHER network on clip folders (appendices B, C, E)")
-    train.add_argument("--config", default="cpu-small", help="model config: paper, cpu-small, cpu-tiny (default cpu-small)")
+    train.add_argument("--config", default="cpu-small", choices=list(CONFIGS),
+                       help="model config (esther_jax.model.CONFIGS; default cpu-small; cpu-small-hand: MediaPipe's pretrained hand backbone)")
     train.add_argument("--data", nargs="+", required=True, help="clip folders (or folders of clips) with crops and targets")
     train.add_argument("--out", required=True, help="run folder (config.json, checkpoints/, metrics.jsonl, model/)")
     train.add_argument("--init", help="start from a previous run's network (e.g. stage 1's run folder)")
@@ -397,8 +398,13 @@ def _train_parser(commands) -> None:
     model.add_argument("--ablation", help="a table-5 row (esther_jax.model.ABLATIONS)")
     _config_flags(model, ModelConfig, {
         "num_frames": {"flag": "--frames", "default": None, "help": f"window length (the config's num_frames by default: {ModelConfig.num_frames})"},
-        "triangulated_wrist_input": {"help": "the wrist query also reads the encoder's triangulated wrist (not in the paper: "
-                                             "docs/architecture.md); give it to both stages"},
+        "backbone": {"default": None, "choices": list(BACKBONES), "help": "the image backbone (default: the config's; "
+                                                                      "mediapipe-hand: MediaPipe's pretrained hand network, crops a multiple of 32 px)"},
+        "freeze_backbone": {"default": None, "action": argparse.BooleanOptionalAction,
+                            "help": "keep the backbone's weights fixed (default: the config's; frozen for paper and cpu-small-hand); "
+                                    "--no-freeze-backbone fine-tunes it (a feature cache needs it frozen)"},
+        "triangulated_wrist_input": {"default": None, "help": "the wrist query also reads the encoder's triangulated wrist (not in the paper: "
+                                                              "docs/architecture.md); give it to both stages"},
     })  # fmt: skip
     model.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                        help="mixed precision: bfloat16 compute, float32 weights, geometry and losses (default: on for the paper config)")
@@ -426,7 +432,7 @@ def _train(args) -> int:
     if data is None or (args.val and val is None):
         return 2
     try:
-        overrides = {k: v for k, v in _config_values(args, M.ModelConfig).items() if v}  # the switches given: the named config's otherwise
+        overrides = {k: v for k, v in _config_values(args, M.ModelConfig).items() if v is not None}  # given: the named config's otherwise
         model_cfg = M.config(args.config, ablation=args.ablation, **overrides)
         bf16 = args.bf16 if args.bf16 is not None else args.config == "paper"
         cfg = train.TrainConfig(**_config_values(args, train.TrainConfig), compute_dtype="bfloat16" if bf16 else "float32")

@@ -20,7 +20,7 @@ TRAIN_FLAGS = (
     "--config", "--data", "--out", "--stage", "--init", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ablation",
     "--triangulated-wrist-input", "--frames", "--frames-apart", "--targets", "--labels", "--val", "--validate-every",
     "--validation-windows", "--features", "--backbone-weights", "--bf16", "--no-bf16", "--ema", "--checkpoint-every",
-    "--distributed", "--seed",
+    "--distributed", "--seed", "--backbone", "--freeze-backbone", "--no-freeze-backbone",
 )  # fmt: skip
 """esther train's flags (users' scripts name them)."""
 
@@ -42,7 +42,8 @@ def test_train_flags_take_their_defaults_from_the_configs():
     for cls in (TrainConfig, DataConfig):
         values = cli._config_values(args, cls)
         assert values and values == {f.name: f.default for f in dataclasses.fields(cls) if f.name in values}
-    assert cli._config_values(args, ModelConfig) == {"num_frames": None, "triangulated_wrist_input": False}
+    given_none = {"num_frames": None, "backbone": None, "freeze_backbone": None, "triangulated_wrist_input": None}
+    assert cli._config_values(args, ModelConfig) == given_none  # a flag left out keeps the named config's value
     given = parser.parse_args(["train", "--data", "d", "--out", "o", "--lr", "1e-3", "--warmup", "7", "--ema", "0.99", "--stage", "image"])
     assert {k: cli._config_values(given, TrainConfig)[k] for k in ("learning_rate", "warmup_steps", "ema_decay", "stage")} == {
         "learning_rate": 1e-3, "warmup_steps": 7, "ema_decay": 0.99, "stage": "image"}  # fmt: skip

@@ -5,14 +5,16 @@ Public names: `ESTHER`, `ModelConfig`, `config`, `CONFIGS`, `ABLATIONS`, `BACKBO
 `cast` (mixed precision), `mirror_clip`, `unmirror`, `trainable`, `extract_features`, `clip_input_from_crops`,
 `crop_projections` (rig-frame joints -> crop pixels, depths and in-crop flags),
 `cross_view_attention` (the stereo blocks' cross-view attention probabilities), `save`, `load`,
-the backbones (`ViT`, `ConvStem`, `make_backbone`, `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
+the backbones (`Backbone`: `ViT`, `ConvStem`, `HandBackbone`; `make_backbone`, `load_dinov3_weights`, `dinov3_state_dict`), the parts (`StereoImageEncoder`,
 `MotionEncoder`, `FusionDecoder`) and their outputs (`ImageEvidence`,
 `MotionEvidence`, `Decoded`), `evidence_statistics`, `decode_kinematic_tree`,
 `depth_bin_centres`; MediaPipe's pretrained hand network (`load_mediapipe_hand`,
 `MediaPipeHand`, `HandLandmarks`) and the TFLite converter behind it (`load_tflite`, `TFLiteGraph`).
 """
 
+from .backbones import Backbone as Backbone
 from .backbones import ConvStem as ConvStem
+from .backbones import HandBackbone as HandBackbone
 from .backbones import ViT as ViT
 from .backbones import dinov3_state_dict as dinov3_state_dict
 from .backbones import load_dinov3_weights as load_dinov3_weights

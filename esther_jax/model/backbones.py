@@ -6,6 +6,8 @@ LayerNorm); with `BACKBONES["dinov3-vitl16"]` it is DINOv3 ViT-L/16 (303.2M
 parameters) and `load_dinov3_weights` fills it from a checkpoint the user owns
 (`.pth`, `.npz` or `.safetensors` with DINOv3's own parameter names). Nothing is ever
 downloaded. `ConvStem` is a small strided-convolution backbone for CPU experiments.
+`HandBackbone` reads a feature map of MediaPipe's pretrained hand landmark network
+(`mediapipe_hand`), whose weights ship inside an installed package.
 
 Images are RGB in [0, 1], channels first `(3, S, S)`, normalised inside with the
 ImageNet mean and standard deviation DINOv3 was trained with.
@@ -21,6 +23,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._layers import Block, Dense, LayerNorm, _trunc_normal, grid_rope
 from .config import BackboneSpec
+from .mediapipe_hand import INPUT_SIZE, STAGES, MediaPipeHand, load_mediapipe_hand
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -105,8 +108,51 @@ class ConvStem(eqx.Module):
         return self.norm(x.reshape(lead + (-1, x.shape[-1])))
 
 
-def make_backbone(spec: BackboneSpec, *, key: PRNGKeyArray) -> ViT | ConvStem:
-    """A randomly initialised backbone of the given architecture."""
+class HandBackbone(eqx.Module):
+    """MediaPipe's pretrained hand landmark network read as a backbone: the feature map
+    `spec.stage` of an RGB crop as (S / stride)^2 patch tokens (row-major, as the other
+    backbones' patches), each LayerNorm-ed over its channels.
+
+    The network expects crops in which the hand is upright (wrist below the middle
+    knuckle) and fills about 1 / 2.6 of the side: MediaPipe's own crops. ESTHER's crops are
+    not rotated; fine-tune it (`freeze_backbone=False`) to adapt it.
+    """
+
+    net: MediaPipeHand
+    norm: LayerNorm
+    stage: str = eqx.field(static=True)
+
+    def __init__(self, spec: BackboneSpec, net: MediaPipeHand | None = None):
+        if spec.stage not in STAGES or len(STAGES[spec.stage][1]) != 3:
+            raise ValueError(f"a hand backbone reads a feature map: stage {spec.stage!r} is not one of "
+                             f"{[k for k, (_, shape) in STAGES.items() if len(shape) == 3]}")  # fmt: skip
+        rows, _, channels = STAGES[spec.stage][1]
+        if INPUT_SIZE // rows != spec.patch_size or channels != spec.width:
+            raise ValueError(f"stage {spec.stage} has stride {INPUT_SIZE // rows} and {channels} channels; "
+                             f"the spec says {spec.patch_size} and {spec.width}")  # fmt: skip
+        self.net = load_mediapipe_hand() if net is None else net
+        self.norm = LayerNorm(spec.width, 1e-5)
+        self.stage = spec.stage
+
+    def __call__(self, images: Float[Array, "*batch 3 S S"]) -> Float[Array, "*batch patches width"]:
+        size = images.shape[-1]
+        if images.shape[-3:] != (3, size, size) or size % 32:
+            raise ValueError(f"images must be (..., 3, S, S) with S a multiple of 32; got {images.shape}")
+        lead = images.shape[:-3]
+        flat = jnp.moveaxis(images.reshape((-1,) + images.shape[-3:]), 1, -1)
+        maps = jax.vmap(lambda image: self.net.features(image, (self.stage,))[self.stage])(flat)
+        return self.norm(maps.reshape(lead + (-1, maps.shape[-1])))
+
+
+Backbone = ViT | ConvStem | HandBackbone
+"""Any image backbone: `(..., 3, S, S)` crops -> `(..., P, width)` patch tokens."""
+
+
+def make_backbone(spec: BackboneSpec, *, key: PRNGKeyArray) -> Backbone:
+    """A backbone of the given architecture: randomly initialised (ViT, conv), or
+    MediaPipe's pretrained hand network from the installed package (`key` unused)."""
+    if spec.kind == "mediapipe-hand":
+        return HandBackbone(spec)
     return ViT(spec, key=key) if spec.kind == "vit" else ConvStem(spec, key=key)
 
 

@@ -16,7 +16,9 @@ from typing import Literal
 class BackboneSpec:
     """Architecture of an image backbone that maps an S x S crop to (S/16)^2 patch tokens."""
 
-    kind: Literal["vit", "conv"]
+    kind: Literal["vit", "conv", "mediapipe-hand"]
+    """A ViT (DINOv3's architecture), a conv stem, or MediaPipe's pretrained hand network
+    (its weights come from the installed package: `esther_jax.model.mediapipe_hand`)."""
     width: int
     """Channels of the output patch tokens."""
     depth: int = 0
@@ -26,6 +28,9 @@ class BackboneSpec:
     """Register ('storage') tokens besides the class token (vit)."""
     layerscale: float | None = None
     patch_size: int = 16
+    stage: str = ""
+    """mediapipe-hand: the feature map read as patch tokens (a key of
+    `mediapipe_hand.STAGES` whose stride is `patch_size`)."""
 
 
 BACKBONES: dict[str, BackboneSpec] = {
@@ -34,6 +39,9 @@ BACKBONES: dict[str, BackboneSpec] = {
     # Small trainable backbones for CPU experiments (same code paths).
     "vit-tiny": BackboneSpec("vit", 96, depth=2, heads=4, registers=1, layerscale=1e-1),
     "conv-small": BackboneSpec("conv", 64, depth=4),
+    # MediaPipe's pretrained hand landmark network (2.7M weights), its stride-16 map:
+    # 112 channels, (S/16)^2 tokens (14 x 14 at its native 224 px).
+    "mediapipe-hand": BackboneSpec("mediapipe-hand", 112, patch_size=16, stage="stride16"),
 }
 
 
@@ -93,6 +101,8 @@ class ModelConfig:
             raise ValueError(f"unknown backbone {self.backbone!r}; choose one of {sorted(BACKBONES)}")
         if self.dim % self.heads or (self.dim // self.heads) % 2:
             raise ValueError(f"dim {self.dim} must split into {self.heads} heads of even width")
+        if self.backbone_spec.kind == "mediapipe-hand" and self.crop_size % 32:
+            raise ValueError(f"crop_size {self.crop_size}: MediaPipe's hand network needs a multiple of 32 (224 native)")
         if self.crop_size % self.backbone_spec.patch_size:
             raise ValueError(f"crop_size {self.crop_size} is not a multiple of the patch size {self.backbone_spec.patch_size}")
         lo, hi = self.depth_range_m
@@ -130,6 +140,11 @@ CONFIGS: dict[str, ModelConfig] = {
     "cpu-small": ModelConfig(
         name="cpu-small", dim=128, heads=4, stereo_layers=2, temporal_layers=2, fusion_layers=1,
         crop_size=112, depth_bins=32, backbone="vit-tiny", freeze_backbone=False,
+    ),
+    # cpu-small's network on MediaPipe's frozen, pretrained hand features of 224 px crops.
+    "cpu-small-hand": ModelConfig(
+        name="cpu-small-hand", dim=128, heads=4, stereo_layers=2, temporal_layers=2, fusion_layers=1,
+        crop_size=224, depth_bins=32, backbone="mediapipe-hand", freeze_backbone=True,
     ),
     # For tests and smoke runs: 64 px crops, a conv stem, one block per stage.
     "cpu-tiny": ModelConfig(

@@ -25,7 +25,7 @@ from ..files import file_sha256, read_json
 from ..crops import crop_poses, resize_crops
 from ..mano import ManoModel, ManoParams, forward_rotations, load_builtin, mirror_params, mirror_points, transform_params
 from ..rotations import matrix_to_axis_angle
-from .backbones import ConvStem, ViT, make_backbone
+from .backbones import Backbone, make_backbone
 from .config import ModelConfig, config
 from .fusion_decoder import Decoded, FusionDecoder, evidence_statistics
 from .motion_encoder import MotionEncoder, MotionEvidence
@@ -92,7 +92,7 @@ class ESTHEROutput(eqx.Module):
 
 
 class ESTHER(eqx.Module):
-    backbone: ViT | ConvStem | None
+    backbone: Backbone | None
     """None when the config reads precomputed features."""
     image_encoder: StereoImageEncoder
     motion_encoder: MotionEncoder
@@ -217,7 +217,7 @@ def cast(model: ESTHER, dtype) -> ESTHER:
     return jax.tree.map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
 
 
-def extract_features(backbone: ViT | ConvStem, images: Float[Array, "*batch 2 3 S S"]) -> Float[Array, "*batch 2 P C"]:
+def extract_features(backbone: Backbone, images: Float[Array, "*batch 2 3 S S"]) -> Float[Array, "*batch 2 P C"]:
     """Backbone patch tokens of crops, one frame at a time (bounded memory): what a
     frozen-backbone training set stores once (`ClipInput.features`)."""
     lead = images.shape[:-4]

@@ -28,7 +28,7 @@ import numpy as np
 from .. import clips
 from ..cameras import StereoRig
 from ..files import atomic_output, exclusive_lock, read_json, write_json
-from ..model.backbones import ConvStem, ViT
+from ..model.backbones import Backbone
 from ..model.esther import ClipInput, clip_input_from_crops, extract_features, mirror_clip
 
 RECORD = "features.json"
@@ -36,7 +36,7 @@ FEATURE_CHUNK = 16
 """Frames whose crops go through the backbone at once."""
 
 
-def backbone_digest(backbone: ViT | ConvStem) -> str:
+def backbone_digest(backbone: Backbone) -> str:
     """sha256 of a backbone's serialised weights: which backbone a cache belongs to."""
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, backbone)
@@ -62,7 +62,7 @@ def _features(backbone, clip: ClipInput, mirrored: bool) -> jax.Array:
 
 
 def precompute_features(
-    backbone: ViT | ConvStem, clip_dirs: list[str | pathlib.Path], crop_size: int, out: str | pathlib.Path, *, progress: bool = True
+    backbone: Backbone, clip_dirs: list[str | pathlib.Path], crop_size: int, out: str | pathlib.Path, *, progress: bool = True
 ) -> pathlib.Path:
     """Fill the feature cache `out` for every hand with crops of `clip_dirs` (module
     docstring); returns `out`."""
