@@ -4,7 +4,7 @@
     python benchmarks/train.py overfit [--config cpu-tiny] [--stage joint|image] [--steps 300] [--batch 2]
     python benchmarks/train.py learn --train DIR --val DIR --out RUN [--config cpu-small]
                                      [--stage1-steps 400] [--stage2-steps 1200] [--lr 5e-4] [--stage1-lr LR] [--frames-apart] [--seed S]
-                                     [--set backbone=conv-small ...]
+                                     [--set backbone=conv-small ...] [--features DIR]
     python benchmarks/train.py probe --model RUN/stage2/model --data DIR
     python benchmarks/train.py loader [--data DIR] [--clips 40] [--batch 8] [--steps 40]
 
@@ -248,7 +248,7 @@ def learn(args) -> None:
     t0 = time.perf_counter()
     final = train.train_stages(out, train_dirs, cfg, stage1_steps=args.stage1_steps, stage2_steps=args.stage2_steps, batch=args.batch,
                                learning_rate=args.lr, stage1_learning_rate=args.stage1_lr, stage1_frames_apart=args.frames_apart,
-                               val_dirs=val_dirs, validate_every=args.validate_every, seed=args.seed)  # fmt: skip
+                               val_dirs=val_dirs, validate_every=args.validate_every, seed=args.seed, features=args.features)  # fmt: skip
     timings = {"both stages (or what was left of them)": time.perf_counter() - t0}
     last = final.parent
     net = M.load(final)
@@ -256,7 +256,8 @@ def learn(args) -> None:
     val_windows = train.build_index(val_dirs, val_cfg)
     result = {"config": cfg.name, "overrides": overrides, "evaluated": last.name, "train_clips": len(train_dirs), "val_clips": len(val_dirs),
               "seconds": timings, "stage1_steps": args.stage1_steps, "stage2_steps": args.stage2_steps, "batch": args.batch, "lr": args.lr,
-              "stage1_lr": args.lr if args.stage1_lr is None else args.stage1_lr, "frames_apart": args.frames_apart, "seed": args.seed}  # fmt: skip
+              "stage1_lr": args.lr if args.stage1_lr is None else args.stage1_lr, "frames_apart": args.frames_apart, "seed": args.seed,
+              "features": args.features}  # fmt: skip
     seen = predict_windows(net, val_windows, val_cfg, batch=args.batch)  # both views: predicted once, scored and broken down
     result["both"] = score_predictions(seen.joints, seen.emitted, val_windows, val_cfg, keypoints_2d=seen.keypoints_2d, batch=args.batch)
     result["right dropped"] = evaluate_windows(net, val_windows, val_cfg, batch=args.batch, view_dropped=1)
@@ -451,6 +452,7 @@ def main() -> None:
     lp.add_argument("--frames-apart", action="store_true", help="stage 1 draws each example's frames apart (TrainConfig.frames_apart)")
     lp.add_argument("--validate-every", type=int, default=400)
     lp.add_argument("--seed", type=int, default=0, help="seed of both stages' batches, masking and augmentation (a finished stage kept in --out keeps its own)")
+    lp.add_argument("--features", metavar="DIR", help="a feature cache of the frozen backbone (e.g. --config cpu-small-hand): filled once, read by both stages")
     lp.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="model config overrides, e.g. backbone=conv-small")
     pp = sub.add_parser("probe")
     pp.add_argument("--model", required=True, help="a saved network (a run's model folder)")

@@ -141,10 +141,12 @@ CONFIGS: dict[str, ModelConfig] = {
         name="cpu-small", dim=128, heads=4, stereo_layers=2, temporal_layers=2, fusion_layers=1,
         crop_size=112, depth_bins=32, backbone="vit-tiny", freeze_backbone=False,
     ),
-    # cpu-small's network on MediaPipe's frozen, pretrained hand features of 224 px crops.
+    # cpu-small's network on MediaPipe's frozen, pretrained hand features: 128 px crops
+    # (8 x 8 tokens), where a hand of our crops (its keypoints' box is the crop) spans
+    # about as many pixels as in MediaPipe's own 224 px crops (2.6 palm boxes wide).
     "cpu-small-hand": ModelConfig(
         name="cpu-small-hand", dim=128, heads=4, stereo_layers=2, temporal_layers=2, fusion_layers=1,
-        crop_size=224, depth_bins=32, backbone="mediapipe-hand", freeze_backbone=True,
+        crop_size=128, depth_bins=32, backbone="mediapipe-hand", freeze_backbone=True,
     ),
     # For tests and smoke runs: 64 px crops, a conv stem, one block per stage.
     "cpu-tiny": ModelConfig(

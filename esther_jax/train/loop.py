@@ -680,6 +680,7 @@ def train_stages(
     validate_every: int = 400,
     validation_windows: int = 48,
     seed: int = 0,
+    features: str | pathlib.Path | None = None,
     progress: bool = True,
 ) -> pathlib.Path:
     """The two training stages ("Training and Supervision", appendix B): stage 1 ('image') trains the image encoder
@@ -689,12 +690,13 @@ def train_stages(
     an interrupted one resumes from its checkpoint. Each stage warms up over a tenth of
     its steps (at most 100), then decays along a cosine to 0 from its peak rate
     (`learning_rate`; stage 1's `stage1_learning_rate` if given). `stage1_frames_apart`
-    draws stage 1's frames apart (`TrainConfig.frames_apart`). Returns the final model
-    folder."""
+    draws stage 1's frames apart (`TrainConfig.frames_apart`). `features`: a feature
+    cache of the (frozen) backbone both stages read instead of the crops
+    (`DataConfig.features`), filled by the first. Returns the final model folder."""
     out = pathlib.Path(out)
     if stage1_steps < 0 or stage2_steps < 0 or stage1_steps + stage2_steps == 0:
         raise ValueError(f"stage steps must be >= 0 and not both 0, got {stage1_steps} and {stage2_steps}")
-    data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size)
+    data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, features=None if features is None else str(features))
     last = None
     stages = (("image", stage1_steps, "stage1", learning_rate if stage1_learning_rate is None else stage1_learning_rate, stage1_frames_apart),
               ("joint", stage2_steps, "stage2", learning_rate, False))  # fmt: skip
