@@ -138,24 +138,34 @@ def mirror_targets(targets: Targets, T_rig_cams: jax.Array) -> Targets:
     return Targets(params.global_orient, params.hand_pose, targets.betas, params.transl, joints, targets.valid)
 
 
-@functools.lru_cache(maxsize=256)
+@functools.lru_cache(maxsize=2048)
 def _clip_arrays(clip: str, side: str, target_file: str):
-    """A hand's crops (images memory-mapped where the file allows: `clips.load_crops`),
-    rig and targets, read once per process."""
+    """A hand's small arrays, read once per process: the shape of its crops, their
+    cameras and flow tokens, its clip's rig and its targets. Kept for many hands, since a
+    frames-apart batch reads frames of hands all over the training set (with 256 hands
+    kept, the studies' 432 made the loader, not the step, set the pace); the images are
+    `_crop_images`'."""
     folder = pathlib.Path(clip)
     crops = clips.load_crops(clips.crops_file(folder, side), mmap=True)
     kind = "gt" if target_file.endswith("gt.npz") else "labels"
     target = clips.load_npz(target_file, kind)
-    return crops["images"], crops["K"], crops["R_cam_crop"], crops["flow"], StereoRig.from_json(folder / "rig.json"), target, kind
+    return crops["images"].shape, crops["K"], crops["R_cam_crop"], crops["flow"], StereoRig.from_json(folder / "rig.json"), target, kind
+
+
+@functools.lru_cache(maxsize=256)
+def _crop_images(clip: str, side: str) -> np.ndarray:
+    """A hand's crops, memory-mapped where the file allows (`clips.load_crops`): fewer
+    kept than `_clip_arrays`, as each holds an open file."""
+    return clips.load_crops(clips.crops_file(pathlib.Path(clip), side), mmap=True)["images"]
 
 
 def _window_arrays(window: Window, cfg: DataConfig, frames: int | None = None) -> tuple[dict, StereoRig]:
     """The arrays `_example` reads for `frames` of a window from its start (`cfg.frames` by
     default; only those frames are read), and its clip's rig."""
     clip = pathlib.Path(window.clip)
-    images, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, str(_target_file(clip, window.side, cfg)))
+    crops_shape, K, R_cam_crop, flow, rig, target, kind = _clip_arrays(window.clip, window.side, str(_target_file(clip, window.side, cfg)))
     sl = slice(window.start, window.start + (cfg.frames if frames is None else frames))
-    if images.shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
+    if crops_shape[0] < sl.stop or target["joints"].shape[0] < sl.stop:
         raise clips.ClipFormatError(f"{clip}: the {window.side} hand has fewer than {sl.stop} frames of crops or targets")
     K = K[sl]
     dtype = np.dtype(jnp.result_type(float))
@@ -163,11 +173,11 @@ def _window_arrays(window: Window, cfg: DataConfig, frames: int | None = None) -
         cached = np.load(feature_file(cfg.features, clip, window.side), mmap_mode="r")
         if cached.shape[0] < sl.stop:
             raise clips.ClipFormatError(f"{feature_file(cfg.features, clip, window.side)} has {cached.shape[0]} frames; "
-                                        f"the crops have {images.shape[0]}: rebuild the feature cache")  # fmt: skip
+                                        f"the crops have {crops_shape[0]}: rebuild the feature cache")  # fmt: skip
         visual = {"features": np.asarray(cached[sl])}
-        K = resize_intrinsics(K, images.shape[2], cfg.crop_size)  # the crops the features were computed from
+        K = resize_intrinsics(K, crops_shape[2], cfg.crop_size)  # the crops the features were computed from
     else:
-        pixels, K = resize_crops(np.asarray(images[sl]), K, cfg.crop_size)
+        pixels, K = resize_crops(np.asarray(_crop_images(window.clip, window.side)[sl]), K, cfg.crop_size)
         visual = {"pixels": pixels if pixels.ndim == 5 else np.repeat(pixels[..., None], 3, axis=-1)}  # grey rigs: RGB
     arrays = {
         **visual,
@@ -221,7 +231,7 @@ def _example(arrays: dict, rig: StereoRig, left: bool, crop_size: int) -> tuple[
     return example, targets
 
 
-@functools.lru_cache(maxsize=256)
+@functools.lru_cache(maxsize=2048)
 def _rig_key(clip: str) -> tuple:
     """A clip's rig (camera models, sizes, intrinsics, poses; `rig.json`'s name is not part
     of the rig) as a key: clips of one rig share it."""
