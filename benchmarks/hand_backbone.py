@@ -11,8 +11,9 @@ one invoke (its input resized to the batch) and one crop at a time, on `--thread
 threads (default: the cores JAX sees). Every row is compiled / warmed first, then timed
 as the median of interleaved rounds (`_timing.interleaved`). The script also prints the
 largest relative difference of the outputs from LiteRT's on the batch (the tests' measure).
-Crops: the real photos' hands of ../shared/data/mediapipe_oracle (or $ESTHER_SHARED_DATA)
-when present (`mediapipe_hand.upright_crop`), filled up with deterministic noise.
+Crops: real photos' hands, where a folder of real test data is given
+(`$ESTHER_SHARED_DATA/mediapipe_oracle`: photos with MediaPipe's reference keypoints), cut
+by `mediapipe_hand.upright_crop`, filled up with deterministic noise; noise alone otherwise.
 """
 
 import argparse
