@@ -265,6 +265,47 @@ def _label(args) -> int:
     return 1 if result["failed"] else 0
 
 
+def _refine_parser(commands) -> None:
+    refine = commands.add_parser("refine", help="a trained network's predictions refined against clips' 2D keypoints into labels (the data engine)")
+    refine.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with hands/<side>/keypoints.npz (and crops/ for --model)")
+    refine.add_argument("--model", help="a run folder of esther train (or its model/ folder): predict every hand first, into --predictions")
+    refine.add_argument("--predictions", metavar="DIR", help="the network's predictions (esther predict --out; default OUT/.predictions): "
+                                                             "written there with --model, else read from there")  # fmt: skip
+    refine.add_argument("--out", required=True, help="output folder, the teacher's format (<clip>/hands/<side>/labels.npz, quality.json)")
+    refine.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and refined from the same prediction")
+    refine.set_defaults(run=_refine)
+
+
+def _refine(args) -> int:
+    from fitting import refine_clips
+
+    from .model.folders import predict_folders
+
+    clip_dirs = _clip_folders(args.clips, "refine")
+    if clip_dirs is None:
+        return 2
+    predictions = pathlib.Path(args.predictions) if args.predictions else pathlib.Path(args.out) / ".predictions"
+    try:
+        if args.model:
+            predicted = predict_folders(args.model, clip_dirs, predictions)
+            for failure in predicted["failed"]:
+                print(f"FAILED to predict {failure['clip']}: {failure['error']}", file=sys.stderr)
+        elif not predictions.is_dir():
+            print(f"esther refine: no predictions in {predictions}: pass --model RUN (or --predictions DIR of esther predict)", file=sys.stderr)
+            return 2
+        result = refine_clips(clip_dirs, predictions, args.out, resume=args.resume)
+    except (OSError, ValueError) as err:  # no saved network, unwritable --out, clashing clip names
+        print(f"esther refine: {err}", file=sys.stderr)
+        return 2
+    for failure in result["failed"]:
+        print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+    rate = result["hand_frames"] / max(result["seconds"], 1e-9)
+    print(f"refined {len(result['labelled'])} clips ({result['hand_frames']} hand-frames in {result['seconds']:.1f} s, {rate:.3g} hand-frames/s), "
+          f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}")  # fmt: skip
+    _write_label_summary(pathlib.Path(args.out), result)
+    return 1 if result["failed"] else 0
+
+
 def _write_label_summary(out: pathlib.Path, result: dict) -> None:
     """`out/label_summary.json`: this run's result (its counts and seconds are this run's),
     its 'labelled' list also keeping the earlier runs' entries of the clips this run did
@@ -538,7 +579,7 @@ def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:
 
 
 _COMMANDS = (_demo_parser, _evaluate_parser, _synth_parser, _detect_parser, _import_hot3d_parser, _crops_parser, _label_parser,
-             _train_parser, _predict_parser)  # fmt: skip
+             _train_parser, _predict_parser, _refine_parser)  # fmt: skip
 """The commands in `esther --help`'s order: each function adds one's parser."""
 
 

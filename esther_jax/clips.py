@@ -317,13 +317,18 @@ def clip_digest(clip_dir: str | pathlib.Path) -> str:
         path = hand_file(clip_dir, side, "keypoints")
         if not path.is_file():
             continue
-        arrays = load_npz(path, "keypoints")
         digest.update(side.encode())
-        for key in sorted(arrays):
-            a = np.ascontiguousarray(arrays[key])
-            digest.update(f"{key}:{a.dtype.str}:{a.shape}".encode())
-            digest.update(a.tobytes())
+        update_digest(digest, load_npz(path, "keypoints"))
     return digest.hexdigest()
+
+
+def update_digest(digest, arrays: dict) -> None:
+    """Feed a file's arrays to a `hashlib` digest by content (names, dtypes, shapes,
+    values), not by the file's bytes (a zip's timestamps differ between equal writes)."""
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        digest.update(f"{key}:{a.dtype.str}:{a.shape}".encode())
+        digest.update(a.tobytes())
 
 
 def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:

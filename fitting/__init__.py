@@ -8,7 +8,9 @@ kinematics. The paper's stages are public, typed functions over `eqx.Module`s:
 
 `label_hand` is their composition for one hand of one clip, `label_hands` for a clip's
 hands as one person's (a hand never seen in stereo takes the other's shape); `label_clip` / `label_clips`
-label clip folders (atomic, resumable). Priors are pluggable (`PosePrior`,
+label clip folders (atomic, resumable). `refine` is the same composition started from a
+network's prediction (the data engine's model-assisted labelling), `refine_clips` its
+folders (`esther refine`). Priors are pluggable (`PosePrior`,
 `MotionPrior`); the solver is part of `LabelConfig` (`SOLVERS`). `esther_jax.studies.teacher_validation` measures
 the teacher against exact ground truth on synthetic held-out clips per rig and detector,
 with appendix N's label quality and admissible band (imported on its own: it draws figures).
@@ -25,12 +27,15 @@ from .evidence import prefilter as prefilter
 from .evidence import template_bones as template_bones
 from .label import label_clip as label_clip
 from .label import label_clips as label_clips
+from .label import refine_clips as refine_clips
 from .label import read_reject_list as read_reject_list
 from .objectives import FitWeights as FitWeights
 from .objectives import Problem as Problem
 from .pipeline import LabelConfig as LabelConfig
 from .pipeline import label_hand as label_hand
 from .pipeline import label_hands as label_hands
+from .pipeline import REFINE_CONFIG as REFINE_CONFIG
+from .pipeline import refine as refine
 from .priors import MotionPrior as MotionPrior
 from esther_jax.mano import PosePrior as PosePrior
 from .quality import depth_per_disparity as depth_per_disparity

@@ -7,9 +7,16 @@ or corrupt file, degenerate rig) is reported and does not stop the others. A rej
 list (human review, the third filter stage) marks hand-frames invalid. The labels are
 MANO parameters of the built-in hand or of the user's models (`--mano DIR`: their
 official `MANO_RIGHT.pkl` / `MANO_LEFT.pkl`), and record which (`mano.model_id`).
+
+`refine_clips` (`esther refine`) writes the same labels from a network's predictions
+(`esther predict`'s folder): each hand is `pipeline.refine`d against the clip's 2D
+keypoints, and the labels record the prediction they grew from (`meta.json`
+`"prediction"`: its folder, its `labelled_by`, the sha256 of its labels arrays), so
+`--resume` redoes a clip whose prediction changed (a later round's network).
 """
 
 import functools
+import hashlib
 import json
 import pathlib
 import shutil
@@ -24,7 +31,7 @@ from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
 from esther_jax.files import check_out_dir, exclusive_lock, remove_stale_partials, write_json
 
-from .pipeline import LabelConfig, label_hands
+from .pipeline import REFINE_CONFIG, LabelConfig, label_hands
 
 
 def read_reject_list(path: str | pathlib.Path) -> frozenset[tuple[str, str, int]]:
@@ -48,6 +55,7 @@ def label_clip(
     rejects: frozenset[tuple[str, str, int]] = frozenset(),
     models: dict[str, mano.ManoModel] | None = None,
     model_sources: dict[str, str] | None = None,
+    predictions: str | pathlib.Path | None = None,
 ) -> dict:
     """Label every hand of one clip folder into `out_dir/<clip name>/` (atomically).
 
@@ -57,6 +65,9 @@ def label_clip(
             built-in hand.
         model_sources: where each of `models` came from (a path), recorded beside the
             model's id; by default 'builtin' when the model is the built-in one, else 'user'.
+        predictions: a folder of a network's predictions in the labels format (`esther
+            predict --out`): every hand is refined from its prediction
+            (`pipeline.refine`; pass `config=REFINE_CONFIG`) instead of labelled from scratch.
 
     The labels record which model they are parameters of: `meta.json` gets
     `"mano_model": {side: {"id": mano.model_id(model), "source": ...}}` for the labelled
@@ -70,7 +81,7 @@ def label_clip(
     clip_dir, out_dir = pathlib.Path(clip_dir), pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with _clip_lock(out_dir, clip_dir.name, wait=True):
-        return _label_locked(clip_dir, out_dir, config, rejects, models, model_sources)
+        return _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, predictions)
 
 
 def _clip_lock(out_dir: pathlib.Path, name: str, *, wait: bool):
@@ -78,7 +89,7 @@ def _clip_lock(out_dir: pathlib.Path, name: str, *, wait: bool):
     return exclusive_lock(out_dir / f".{name}.lock", wait=wait)
 
 
-def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources) -> dict:
+def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, predictions=None) -> dict:
     """`label_clip` with the clip's lock held: nobody else writes `out_dir/<clip>`."""
     meta = clips.read_meta(clip_dir)
     rig = StereoRig.from_json(clip_dir / "rig.json")
@@ -91,10 +102,12 @@ def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources) -> 
     summary = {"clip": clip_dir.name, "hands": {}}
     try:
         source = {"name": clip_dir.name, "digest": clips.clip_digest(clip_dir)}
-        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary)
+        origin = None if predictions is None else prediction_record(pathlib.Path(predictions), clip_dir.name, sides)
+        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary, predictions)
         # replaces any "mano_model" of the input clip's meta (that one describes its gt.npz)
         recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
-        clips.write_meta(tmp, **{**meta, "labelled_by": "esther teacher", "mano_model": recorded, "source_clip": source})
+        made = {"labelled_by": "esther teacher"} if origin is None else {"labelled_by": "esther refine", "prediction": origin}
+        clips.write_meta(tmp, **{**meta, **made, "mano_model": recorded, "source_clip": source})
         if final.exists():
             shutil.rmtree(final)
         tmp.rename(final)
@@ -122,7 +135,25 @@ def _builtin_id(side: str) -> str:
     return mano.model_id(mano.load_builtin(side))  # the same with and without x64
 
 
-def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary) -> None:
+def prediction_record(predictions: pathlib.Path, clip: str, sides: list[str]) -> dict:
+    """What refined labels record of their prediction (`meta.json` `"prediction"`): its
+    folder, what made it (its `labelled_by`) and the sha256 of its sides' labels arrays.
+    A side without a prediction is a `ClipFormatError` naming the file."""
+    digest = hashlib.sha256()
+    for side in sides:
+        path = clips.hand_file(predictions / clip, side, "labels")
+        if not path.is_file():
+            raise clips.ClipFormatError(f"no prediction of the {side} hand: {path} is missing (esther predict --out {predictions} writes it)")
+        digest.update(side.encode())
+        clips.update_digest(digest, clips.load_npz(path, "labels"))
+    try:
+        made_by = clips.read_meta(predictions / clip).get("labelled_by")
+    except (OSError, ValueError, clips.ClipFormatError):
+        made_by = None
+    return {"folder": str(predictions.resolve()), "labelled_by": made_by, "sha256": digest.hexdigest()}
+
+
+def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary, predictions=None) -> None:
     keypoints, hand_models, records, monocular = {}, {}, {}, {}
     for side in sides:
         keypoints[side] = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
@@ -136,7 +167,9 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sourc
         monocular[side] = clips.load_npz(mono_path, "monocular") if mono_path.is_file() else None
     # one person's hands share a shape only when both are fitted with the same kind of model
     share = len({record["source"] == "builtin" for record in records.values()}) == 1
-    results = label_hands(hand_models, rig, keypoints, float(meta["fps"]), config, monocular, share_shape=share)
+    start = None if predictions is None else {side: clips.Labels.from_npz(clips.hand_file(pathlib.Path(predictions) / clip_dir.name, side, "labels")).params
+                                              for side in sides}  # fmt: skip
+    results = label_hands(hand_models, rig, keypoints, float(meta["fps"]), config, monocular, share_shape=share, predictions=start)
     for side in sides:
         labels, report = results[side]
         record = records[side]
@@ -166,13 +199,16 @@ def label_clips(
     progress: bool = True,
     models: dict[str, mano.ManoModel] | None = None,
     model_sources: dict[str, str] | None = None,
+    predictions: str | pathlib.Path | None = None,
 ) -> dict:
     """Label many clips; per-clip failures are collected, not raised.
 
     `models` / `model_sources` as in `label_clip` (checked once, before any clip). With
     `resume`, a clip is skipped only when its finished labels are of the same models
     (the `mano_model` ids of its `meta.json`; labels that record none are of the built-in
-    hand); labels of other models are redone.
+    hand); labels of other models are redone. With `predictions` (`label_clip`'s; see
+    `refine_clips`) a finished clip is kept only when it was refined from the same
+    prediction, and labels of the teacher are not kept for it (nor refined ones without).
 
     Safe to run twice at once on one `out_dir`: each clip is labelled under its own lock;
     a clip another process is labelling is put back and taken last (waiting for the
@@ -213,12 +249,12 @@ def label_clips(
         with _clip_lock(out_dir, clip.name, wait=wait) as locked:
             if not locked:
                 return False
-            finished = _labelled_with(meta_path, wanted) and _made_from(meta_path, clip)
+            finished = _labelled_with(meta_path, wanted) and _made_from(meta_path, clip) and _refined_from(meta_path, clip, predictions)
             if finished and (resume or (wait and meta_path.stat().st_mtime >= started)):
                 skipped.append(clip.name)  # done before (--resume), or by the other process just now
                 return True
             try:
-                summary = _label_locked(clip, out_dir, config, rejects, models, model_sources)
+                summary = _label_locked(clip, out_dir, config, rejects, models, model_sources, predictions)
             except Exception as err:  # a bad clip never stops the batch: report it and go on
                 failed.append({"clip": str(clip), "error": f"{type(err).__name__}: {err}"})
                 return True
@@ -231,6 +267,41 @@ def label_clips(
     for clip in busy:  # another process holds them: wait, then skip what it finished
         attempt(clip, wait=True)
     return {"labelled": done, "skipped": skipped, "failed": failed, "hand_frames": frames, "seconds": seconds}
+
+
+def refine_clips(
+    clip_dirs: list[str | pathlib.Path],
+    predictions: str | pathlib.Path,
+    out_dir: str | pathlib.Path,
+    *,
+    resume: bool = False,
+    config: LabelConfig = REFINE_CONFIG,
+    progress: bool = True,
+    models: dict[str, mano.ManoModel] | None = None,
+    model_sources: dict[str, str] | None = None,
+) -> dict:
+    """Refine a network's predictions (`predictions`: `esther predict`'s folder) of many
+    clips into labels in the teacher's format (`esther refine`): `label_clips` with every
+    hand started from its prediction (`pipeline.refine`), the same locks, atomic writes
+    and resume, and each clip's labels recording their prediction (module docstring)."""
+    predictions = pathlib.Path(predictions)
+    if not predictions.is_dir():
+        raise ValueError(f"{predictions} is not a folder of predictions (esther predict --model RUN CLIP... --out {predictions} writes one)")
+    return label_clips(clip_dirs, out_dir, resume=resume, config=config, progress=progress, models=models, model_sources=model_sources,
+                       predictions=predictions)  # fmt: skip
+
+
+def _refined_from(meta_path: pathlib.Path, clip: pathlib.Path, predictions: str | pathlib.Path | None) -> bool:
+    """True when finished labels were made as this run would make them: the teacher's
+    from scratch (`predictions` None), or refined from the prediction now in `predictions`."""
+    try:
+        recorded = json.loads(meta_path.read_text()).get("prediction")
+        if predictions is None:
+            return recorded is None
+        sides = [s for s in clips.SIDES if clips.hand_file(clip, s, "keypoints").is_file()]
+        return isinstance(recorded, dict) and recorded.get("sha256") == prediction_record(pathlib.Path(predictions), clip.name, sides)["sha256"]
+    except (OSError, ValueError, AttributeError, clips.ClipFormatError):
+        return False  # unreadable: label again (a missing prediction then reports its error)
 
 
 def _made_from(meta_path: pathlib.Path, clip: pathlib.Path) -> bool:

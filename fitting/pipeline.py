@@ -11,6 +11,11 @@ compiled program serves every rig of the same camera models and image sizes (the
 size is a camera's static field; a rig has no name). Nothing compiled contains a host callback, so every program is stored in
 the persistent compilation cache (`esther_jax.enable_compilation_cache`).
 
+`refine` is the same composition started from a network's prediction (the data engine's
+model-assisted labelling): the prediction replaces the initialisation (the palm pose is
+refined from it, not searched) and starts the shape lock (`REFINE_CONFIG`); the
+filter and quality record are the teacher's.
+
 Frames seen by both views are stereo frames; frames seen by one view are labelled too
 (monocular frames: depth from the locked hand size, the priors and the neighbouring
 frames, not from triangulation). `labels["stereo"]` tells them apart, and `quality.json`
@@ -127,6 +132,37 @@ def check_keypoints(keypoints: dict, fps: float) -> tuple[int, int]:
     return D, T
 
 
+def check_prediction(prediction: mano.ManoParams, frames: int, num_betas: int) -> dict[str, np.ndarray]:
+    """Validate a prediction to refine at the edge: per frame global_orient [T,3],
+    hand_pose [T,15,3], transl [T,3] and betas [T,B] (or one [B]), all finite; returns its
+    fields as float64 host arrays, the betas per frame."""
+    expected = {"global_orient": (frames, 3), "hand_pose": (frames, 15, 3), "transl": (frames, 3)}
+    arrays = {}
+    for name, shape in expected.items():
+        value = np.asarray(getattr(prediction, name), np.float64)
+        if value.shape != shape:
+            raise ValueError(f"prediction {name} must be {list(shape)} to match the keypoints' {frames} frames, got {list(value.shape)}")
+        arrays[name] = value
+    betas = np.asarray(prediction.betas, np.float64)
+    if betas.shape not in ((num_betas,), (frames, num_betas)):
+        raise ValueError(f"prediction betas must be [{num_betas}] or [{frames}, {num_betas}], got {list(betas.shape)}")
+    arrays["betas"] = np.broadcast_to(betas, (frames, num_betas))
+    bad = [name for name, value in arrays.items() if not np.isfinite(value).all()]
+    if bad:
+        raise ValueError(f"prediction has NaN or infinite values in {', '.join(bad)}: refine needs a finite start in every frame")
+    return arrays
+
+
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
+def _prediction_fits(prediction: mano.ManoParams, observed) -> stages.Fits:
+    """A prediction as the stages' starting fits: its pose and wrist per frame, one shape
+    (the mean of the observed frames' betas; of all frames when none is observed)."""
+    w = jnp.where(jnp.any(observed), observed, True).astype(prediction.betas.dtype)
+    betas = jnp.sum(prediction.betas * w[:, None], axis=0) / jnp.sum(w)
+    T = prediction.transl.shape[0]
+    return stages.Fits(prediction.global_orient, prediction.hand_pose, prediction.transl, jnp.broadcast_to(betas, (T, betas.shape[0])), jnp.zeros(T, bool))
+
+
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _prepare(model, rig, uv, conf, box, box_score):
     fused = fusion.fuse(uv, conf, box, box_score)
@@ -209,6 +245,40 @@ def label_hand(
         return _label_hand(model, rig, keypoints, fps, config, monocular, shape)
 
 
+REFINE_CONFIG = LabelConfig(shape_lock_rounds=2)
+"""`refine`'s default: the teacher's stages and step counts with a second shape-lock
+round. A prediction's pose is noisier frame to frame than the teacher's start (the mean
+pose), and one round left its shape off: on a clean synthetic clip, from ground truth
+perturbed by 0.15 rad per joint, 3 cm and 0.5 per beta, P-MPJPE 2.2 mm with one round,
+1.1 with two (the teacher's own 1.2). `benchmarks/teacher.py refine` measures it."""
+
+
+def refine(
+    model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, prediction: mano.ManoParams,
+    config: LabelConfig = REFINE_CONFIG, shape: np.ndarray | None = None,
+) -> tuple[clips.Labels, dict]:  # fmt: skip
+    """Refine a network's prediction of one hand of one clip into a label (the paper's
+    model-assisted labelling, "Model-Assisted Labeling and Iterative Enhancement"): the
+    teacher's own stages and objectives against the clip's 2D keypoints in every view that
+    sees the hand (one view is enough), under the pose prior and the temporal terms,
+    started from the prediction instead of the teacher's initialisation (its palm pose
+    refined, not searched; its finger pose, not the mean pose), then the teacher's
+    reprojection filter and label quality.
+
+    Args:
+        model, rig, keypoints, fps, shape: as in `label_hand`.
+        prediction: the network's MANO parameters per frame (rig frame, metres, radians):
+            global_orient [T,3], hand_pose [T,15,3], transl [T,3], betas [T,10] (e.g.
+            `clips.Labels.params` of `esther predict`); finite in every frame.
+        config: the teacher's settings (`REFINE_CONFIG`).
+    Returns:
+        (labels, quality report) as `label_hand`'s; the report's "initialised_from" is
+        "prediction".
+    """
+    with _CPU_TURNS if jax.default_backend() == "cpu" else contextlib.nullcontext():
+        return _label_hand(model, rig, keypoints, fps, config, None, shape, prediction)
+
+
 _CPU_TURNS = threading.Lock()
 """Held while a `label_hand` call runs on the CPU. Two threads labelling hands at once hung
 for good on a 2-core machine (both waiting in the shape lock's solver): XLA's CPU runtime
@@ -217,13 +287,16 @@ runs a while loop's iterations on its thread pool and can block a pool thread in
 and wait on each other. So concurrent calls run one after another, as from one thread."""
 
 
-def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[clips.Labels, dict]:
+def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction=None) -> tuple[clips.Labels, dict]:
     D, T = check_keypoints(keypoints, fps)
+    if prediction is not None:
+        prediction = check_prediction(prediction, T, model.num_betas)
     timings = {}  # seconds per stage, each stage waited for (JAX dispatches asynchronously)
     t0 = time.perf_counter()
     L = bucket_length(T)
     dtype = jnp.result_type(float)
     pad = lambda x: np.pad(np.asarray(x, np.float64), [(0, 0), (0, L - T)] + [(0, 0)] * (np.ndim(x) - 2))  # noqa: E731
+    pad_edge = lambda x: np.pad(np.asarray(x, np.float64), [(0, L - T)] + [(0, 0)] * (np.ndim(x) - 1), mode="edge")  # noqa: E731
     far = far_outside_image(rig, keypoints["uv"])
     host = {k: pad(keypoints[k]) for k in ("uv", "conf", "box", "box_score")}
     host["conf"][:, :T][far] = 0.0  # not observations
@@ -246,11 +319,18 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[c
 
     t1 = time.perf_counter()
     problem = _problem(model, rig, weights, zeros, fps_t)
-    init, pose0 = _start(model, rig, evidence, zeros, dev["mono_orient"], dev["mono_pose"], mono_has)
+    if prediction is None:  # the teacher: the palm pose search, the mean (or monocular) pose
+        init, pose0 = _start(model, rig, evidence, zeros, dev["mono_orient"], dev["mono_pose"], mono_has)
+        start = stages.start_fits(init, pose0, zeros)
+    else:  # refine: the prediction starts every frame, its palm pose refined, not searched
+        padded = {k: jnp.asarray(pad_edge(v), dtype) for k, v in prediction.items()}
+        start = _prediction_fits(mano.ManoParams(padded["global_orient"], padded["hand_pose"], padded["betas"], padded["transl"]), observed)
+        previous = ev.Initial(start.transl, start.global_orient, *(jnp.zeros(L, bool),) * 3)
+        init = _restart(model, rig, evidence, start.betas[0], dev["mono_orient"], mono_has, previous)
     data = stages.frame_data(evidence, init, problem)
     solver = dict(steps=config.steps, solver=config.solver)
     lock = stages.shape_lock(
-        problem, data, stages.start_fits(init, pose0, zeros), stereo, observed,
+        problem, data, start, stereo, observed,
         frames=config.shape_lock_frames, rounds=config.shape_lock_rounds, steps=config.shape_lock_steps, solver=config.solver,
     )  # fmt: skip
     jax.block_until_ready(lock)
@@ -284,7 +364,9 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape) -> tuple[c
     )  # fmt: skip
     timings["labels_s"] = time.perf_counter() - t4
     out["far_outside"] = int(far.sum())
-    return _package(out, T, model, mono_has, config, timings, has_shape)
+    labels, report = _package(out, T, model, mono_has, config, timings, has_shape)
+    report["initialised_from"] = "teacher" if prediction is None else "prediction"
+    return labels, report
 
 
 def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelConfig, timings: dict, has_shape: bool) -> tuple[clips.Labels, dict]:
@@ -346,6 +428,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
 def label_hands(
     models: dict[str, mano.ManoModel], rig: StereoRig, keypoints: dict[str, dict], fps: float,
     config: LabelConfig = LabelConfig(), monocular: dict[str, dict | None] | None = None, *, share_shape: bool = True,
+    predictions: dict[str, mano.ManoParams] | None = None,
 ) -> dict[str, tuple[clips.Labels, dict]]:  # fmt: skip
     """Label the hands of one clip (`label_hand` per side), the two hands as one person's:
     a hand that no frame sees in both views takes the shape locked on the other hand when
@@ -355,15 +438,23 @@ def label_hands(
     Args:
         models, keypoints (and optionally monocular): per side ('right', 'left').
         share_shape: False labels each hand on its own (models of different shape spaces).
+        predictions: per side, a network's prediction to `refine` instead of labelling
+            from scratch (every side of `keypoints` needs one).
     Returns:
         {side: (labels, quality report)}; each report's "seconds" is the time spent on
         that hand (both passes when it took the other hand's shape).
     """
     monocular = monocular or {}
+    missing = sorted(set(keypoints) - set(predictions)) if predictions is not None else []
+    if missing:
+        raise ValueError(f"predictions lack the {', '.join(missing)} hand: refine needs a prediction of every hand it labels")
 
     def one(side: str, shape=None, spent: float = 0.0) -> tuple[clips.Labels, dict]:
         t0 = time.perf_counter()
-        labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape)
+        if predictions is None:
+            labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape)
+        else:
+            labels, report = refine(models[side], rig, keypoints[side], fps, predictions[side], config, shape=shape)
         report["seconds"] = spent + time.perf_counter() - t0
         return labels, report
 
