@@ -1,7 +1,7 @@
 """The teacher: compilation and cache reuse, accuracy and speed across rigs, and its solvers
 side by side, with the public `fitting` API only.
 
-    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|step|all] [--quick]
+    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|step|refine|all] [--quick]
 
 1. Compile / cache (issue 11, point 6). Each measurement runs in a fresh process
    (`--child`) given a fresh temporary directory through `esther_jax.enable_compilation_cache`:
@@ -35,6 +35,10 @@ side by side, with the public `fitting` API only.
    as the solver assembles them from the objective's structure
    (`objectives.frame_normal_equations`), its closed-form reprojection part, and the
    Cholesky solve, each timed alone; the two normal equations' agreement.
+5. Refine (`--section refine`, issue 49): `fitting.refine` from each hand's ground truth
+   perturbed as a poor network's prediction against the teacher on the same hands:
+   hand-frames/s, coverage, P-MPJPE (also on the frames both accept), accepted labels
+   worse than 15 mm; target: refine >= 5x the teacher's throughput.
 
 `--quick` is a smoke run (1 clip of 32 frames; section 1 only when asked for by
 `--section compile`, then on 32-frame clips); the targets are for the full settings.
@@ -431,11 +435,49 @@ def step_section(frames: int):
 # ----------------------------------------------------------------------------- main
 
 
+def refine_section(clips: int, frames: int, seed: int = 2000):
+    """`fitting.refine` against the teacher on the same hands: each hand's ground truth
+    perturbed as a poor network's prediction (0.15 rad per joint angle and frame, 3 cm of
+    wrist, 0.5 per beta) is refined; throughput in hand-frames/s (compilation apart) and
+    accuracy on the frames both accept."""
+    print(f"\n== refine against the teacher: {clips} synthetic clips of {frames} frames, both hands, start = perturbed ground truth")
+    cfg = synth.SynthConfig(num_frames=frames, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    hands = [(c, side) for c in (synth.make_clip(seed, i, cfg) for i in range(clips)) for side in c.keypoints]
+    rng = np.random.default_rng(0)
+
+    def prediction(gt):
+        T = gt["transl"].shape[0]
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        return mano.ManoParams(f32(gt["global_orient"] + rng.normal(scale=0.15, size=(T, 3))), f32(gt["hand_pose"] + rng.normal(scale=0.15, size=(T, 15, 3))),
+                               f32(np.broadcast_to(gt["betas"] + rng.normal(scale=0.5, size=10), (T, 10))), f32(gt["transl"] + rng.normal(scale=0.03, size=(T, 3))))  # fmt: skip
+
+    starts = [prediction(c.gt[side]) for c, side in hands]
+    runs = {"teacher": lambda c, side, start: fitting.label_hand(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"]),
+            "refine": lambda c, side, start: fitting.refine(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"], start)}  # fmt: skip
+    rows, seconds = {}, {}
+    for name, run in runs.items():
+        run(*hands[0], starts[0])  # compilation apart
+        t0 = time.perf_counter()
+        rows[name] = [frame_rows(run(c, side, start)[0], c.gt[side]) for (c, side), start in zip(hands, starts)]
+        seconds[name] = time.perf_counter() - t0
+    total = sum(len(r["valid"]) for r in rows["teacher"])
+    both = [t["valid"] & r["valid"] & t["onscreen"] for t, r in zip(rows["teacher"], rows["refine"])]
+    for name in runs:
+        cat = {k: np.concatenate([h[k] for h in rows[name]]) for k in ("p_mpjpe", "wrist", "valid", "onscreen")}
+        same = np.concatenate([h["p_mpjpe"][b] for h, b in zip(rows[name], both)])
+        ok = cat["valid"] & cat["onscreen"]
+        print(f"{name:<8} {total / seconds[name]:8.0f} hand-frames/s   coverage {ok.sum() / cat['onscreen'].sum():6.1%}   "
+              f"P-MPJPE {np.mean(cat['p_mpjpe'][ok]):5.2f} mm (on the frames both accept {np.mean(same):5.2f})   wrist {np.mean(cat['wrist'][ok]):5.2f} mm   "
+              f"accepted worse than 15 mm: {np.sum(ok & (cat['p_mpjpe'] > 15.0))}")  # fmt: skip
+    ratio = seconds["teacher"] / seconds["refine"]
+    print("refine / teacher throughput: " + target("refine throughput", ratio, 5.0, "x", at_most=False))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clips", type=int, default=4)
     parser.add_argument("--frames", type=int, default=64)
-    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "step", "all"), default="all")
+    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "step", "refine", "all"), default="all")
     parser.add_argument("--solvers", nargs="+", choices=fitting.SOLVERS, default=fitting.SOLVERS, help="section 3's solvers")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 clip of 32 frames, section 1 only when asked for")
     parser.add_argument("--child", choices=("cold", "warm"), help=argparse.SUPPRESS)
@@ -457,6 +499,8 @@ def main():
         solvers_section(args.clips, args.frames, tuple(args.solvers))
     if args.section in ("step", "all"):
         step_section(args.frames)
+    if args.section in ("refine", "all"):
+        refine_section(args.clips, args.frames)
     if TARGETS:
         print("\nsummary:")
         for what, text, _ in TARGETS:
