@@ -253,15 +253,20 @@ def _label(args) -> int:
         for summary in result["labelled"]:
             for sheet in review_clip(next(c for c in clips if c.name == summary["clip"]), pathlib.Path(args.out)):
                 print(f"review sheet: {sheet}")
+    return _report_labels("labelled", result, pathlib.Path(args.out))
+
+
+def _report_labels(verb: str, result: dict, out: pathlib.Path) -> int:
+    """Print a labelling run's failures and counts, merge its summary into `out`; the exit code."""
     for failure in result["failed"]:
         print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
     rate = result["hand_frames"] / max(result["seconds"], 1e-9)
     print(
-        f"labelled {len(result['labelled'])} clips ({result['hand_frames']} hand-frames in {result['seconds']:.1f} s, "
+        f"{verb} {len(result['labelled'])} clips ({result['hand_frames']} hand-frames in {result['seconds']:.1f} s, "
         f"{rate:.3g} hand-frames/s), "
-        f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}"
+        f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {out.resolve()}"
     )
-    _write_label_summary(pathlib.Path(args.out), result)
+    _write_label_summary(out, result)
     return 1 if result["failed"] else 0
 
 
@@ -297,13 +302,7 @@ def _refine(args) -> int:
     except (OSError, ValueError) as err:  # no saved network, unwritable --out, clashing clip names
         print(f"esther refine: {err}", file=sys.stderr)
         return 2
-    for failure in result["failed"]:
-        print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
-    rate = result["hand_frames"] / max(result["seconds"], 1e-9)
-    print(f"refined {len(result['labelled'])} clips ({result['hand_frames']} hand-frames in {result['seconds']:.1f} s, {rate:.3g} hand-frames/s), "
-          f"skipped {len(result['skipped'])}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}")  # fmt: skip
-    _write_label_summary(pathlib.Path(args.out), result)
-    return 1 if result["failed"] else 0
+    return _report_labels("refined", result, pathlib.Path(args.out))
 
 
 def _write_label_summary(out: pathlib.Path, result: dict) -> None:
