@@ -292,7 +292,7 @@ def _refine(args) -> int:
     predictions = pathlib.Path(args.predictions) if args.predictions else pathlib.Path(args.out) / ".predictions"
     try:
         if args.model:
-            predicted = predict_folders(args.model, clip_dirs, predictions)
+            predicted = predict_folders(args.model, clip_dirs, predictions, resume=args.resume)
             for failure in predicted["failed"]:
                 print(f"FAILED to predict {failure['clip']}: {failure['error']}", file=sys.stderr)
         elif not predictions.is_dir():
@@ -533,6 +533,7 @@ def _predict_parser(commands) -> None:
     predict.add_argument("--model", required=True, help="a run folder of esther train (or its model/ folder)")
     predict.add_argument("clips", nargs="+", help="clip folders (or folders of clips) with crops/<side>.npz")
     predict.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz: esther evaluate reads it)")
+    predict.add_argument("--resume", action="store_true", help="keep clips already predicted by the same network")
     predict.set_defaults(run=_predict)
 
 
@@ -543,13 +544,14 @@ def _predict(args) -> int:
     if clip_dirs is None:
         return 2
     try:
-        result = predict_folders(args.model, clip_dirs, args.out)
+        result = predict_folders(args.model, clip_dirs, args.out, resume=args.resume)
     except (OSError, ValueError) as err:  # no saved network there, a damaged one
         print(f"esther predict: {err}", file=sys.stderr)
         return 2
     for failure in result["failed"]:
         print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
-    print(f"predicted {len(result['predicted'])} clips, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}")
+    kept = f", kept {len(result['skipped'])}" if result["skipped"] else ""
+    print(f"predicted {len(result['predicted'])} clips{kept}, failed {len(result['failed'])} -> {pathlib.Path(args.out).resolve()}")
     return 1 if result["failed"] else 0
 
 
@@ -577,8 +579,59 @@ def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:
     return models, sources
 
 
+def _engine_parser(commands) -> None:
+    from .engine import EngineConfig
+    from .model.config import CONFIGS
+
+    engine = commands.add_parser("engine", help="the data engine: teacher labels a share, then rounds of train, predict, refine, filter")
+    engine.add_argument("clips", nargs="+", help="the raw collection: clip folders (or folders of clips) with hands/<side>/keypoints.npz and crops/")
+    engine.add_argument("--out", required=True, help="engine folder (engine.json, teacher/, round_NNN/: labels, run, round.json)")
+    engine.add_argument("--rounds", type=int, default=2, help="rounds to run or resume (round 0: the teacher's labels alone; default 2)")
+    engine.add_argument("--val", nargs="+", help="held-out clips with ground truth: each round's network is scored on them")
+    engine.add_argument("--features", metavar="DIR", help="a feature cache of a frozen backbone (e.g. --config cpu-small-hand), shared by the rounds")
+    d = EngineConfig()
+    engine.add_argument("--config", default=d.config, choices=list(CONFIGS), help=f"the network's config (default {d.config})")
+    engine.add_argument("--teacher-share", type=float, default=d.teacher_share, help=f"share of the clips the teacher labels (default {d.teacher_share})")
+    engine.add_argument("--stage1-steps", type=int, default=d.stage1_steps)
+    engine.add_argument("--stage2-steps", type=int, default=d.stage2_steps)
+    engine.add_argument("--batch", type=int, default=d.batch)
+    engine.add_argument("--lr", type=float, default=d.learning_rate, help="peak learning rate (of both stages unless --stage1-lr)")
+    engine.add_argument("--stage1-lr", type=float, help="stage 1's peak learning rate")
+    engine.add_argument("--frames-apart", action="store_true", help="stage 1 draws each example's frames apart")
+    engine.add_argument("--warm-start", action="store_true", help="a later round starts from the previous round's network (default: from scratch)")
+    engine.add_argument("--seed", type=int, default=d.seed, help="seed of the teacher's share and of the training")
+    engine.set_defaults(run=_engine)
+
+
+def _engine(args) -> int:
+    from .engine import EngineConfig, run_engine
+
+    clip_dirs = _clip_folders(args.clips, "engine")
+    val = _clip_folders(args.val, "engine") if args.val else None
+    if clip_dirs is None or (args.val and val is None):
+        return 2
+    try:
+        cfg = EngineConfig(config=args.config, teacher_share=args.teacher_share, stage1_steps=args.stage1_steps, stage2_steps=args.stage2_steps,
+                           batch=args.batch, learning_rate=args.lr, stage1_learning_rate=args.stage1_lr, frames_apart=args.frames_apart,
+                           warm_start=args.warm_start, seed=args.seed)  # fmt: skip
+        records = run_engine(clip_dirs, args.out, cfg, rounds=args.rounds, val_dirs=val, features=args.features)
+    except (OSError, ValueError) as err:  # a bad plan, another engine on --out, a resume with other options
+        print(f"esther engine: {err}", file=sys.stderr)
+        return 2
+    for r in records:
+        labels = r["labels"]["all"]
+        cover = f", coverage {labels['coverage']:.1%} of {labels['onscreen']} on-screen hand-frames" if labels else ""
+        net = r.get("network", {}).get("both")
+        scored = f"; held-out P-MPJPE {net['p_mpjpe_mm']:.1f} mm, wrist {net['wrist_mm']:.1f} mm" if net else ""
+        print(f"round {r['round']}: {r['teacher_clips']} teacher + {r['refined_clips']} refined clips{cover}{scored}")
+        for failure in r["failed"]:
+            print(f"  FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+    print(f"-> {pathlib.Path(args.out).resolve()}")
+    return 1 if any(r["failed"] for r in records) else 0
+
+
 _COMMANDS = (_demo_parser, _evaluate_parser, _synth_parser, _detect_parser, _import_hot3d_parser, _crops_parser, _label_parser,
-             _train_parser, _predict_parser, _refine_parser)  # fmt: skip
+             _train_parser, _predict_parser, _refine_parser, _engine_parser)  # fmt: skip
 """The commands in `esther --help`'s order: each function adds one's parser."""
 
 

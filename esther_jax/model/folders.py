@@ -9,10 +9,13 @@ the first window that covers it. A view whose crop box lies wholly outside its i
 absent. The output, `<out>/<clip>/hands/<side>/labels.npz`, has the keys of the
 teacher's labels with `valid = emitted` (the frames the gate emits) and
 `onscreen = emitted`, the clip's shape the mean of its windows' shapes, and `meta.json`
-records the model (`mano_model`: the built-in hand) and the source clip's digest, so
-`esther evaluate` scores it unchanged.
+records the model (`mano_model`: the built-in hand), the source clip's digest and the
+network (`network`: its folder and the sha256 of its files, so `--resume` redoes a clip
+that another network predicted), so `esther evaluate` scores it unchanged.
 """
 
+import hashlib
+import json
 import pathlib
 import shutil
 import tempfile
@@ -81,18 +84,45 @@ def predict_hand(net: ESTHER, clip_dir: pathlib.Path, side: str, rig: StereoRig,
     return clips.Labels(params, f32(out.joints), emitted, emitted, jnp.full(T, jnp.nan, jnp.float32), onscreen_prob=f32(out.onscreen_prob))
 
 
-def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib.Path], out_dir: str | pathlib.Path, *, progress: bool = True) -> dict:
+def _network_digest(model_dir: pathlib.Path) -> str:
+    """sha256 of a saved network's files (`save`'s folder): which network predicted."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in model_dir.rglob("*") if p.is_file()):
+        digest.update(path.relative_to(model_dir).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _predicted_by(meta_path: pathlib.Path, clip: pathlib.Path, network: str) -> bool:
+    """True when finished predictions in `meta_path` are of this clip by this network."""
+    try:
+        meta = json.loads(meta_path.read_text())
+        return meta.get("network", {}).get("sha256") == network and meta.get("source_clip", {}).get("digest") == clips.clip_digest(clip)
+    except (OSError, ValueError, AttributeError):
+        return False  # missing or unreadable: predict again
+
+
+def predict_folders(
+    model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib.Path], out_dir: str | pathlib.Path, *, resume: bool = False, progress: bool = True
+) -> dict:
     """Predict every hand with crops of `clip_dirs` with the network saved in `model_dir`
     (a run folder's `model/`, or the run folder) into `out_dir` (labels format, each
-    clip written atomically under its lock). Per-clip failures are collected."""
+    clip written atomically under its lock, its `meta.json` recording the network:
+    `"network": {"folder", "sha256"}`). With `resume`, a clip already predicted by the
+    same network (same sha256) from the same clip is kept. Per-clip failures are collected."""
     from tqdm import tqdm
 
     model_dir = pathlib.Path(model_dir)
-    net = load(model_dir / "model" if (model_dir / "model").is_dir() else model_dir)
+    model_dir = model_dir / "model" if (model_dir / "model").is_dir() else model_dir
+    net = load(model_dir)
+    network = {"folder": str(model_dir), "sha256": _network_digest(model_dir)}
     out_dir = check_out_dir(out_dir)
-    done, failed = [], []
+    done, skipped, failed = [], [], []
     for clip in tqdm([pathlib.Path(c) for c in clip_dirs], desc="predict", unit="clip", disable=not progress):
         try:
+            if resume and _predicted_by(out_dir / clip.name / "meta.json", clip, network["sha256"]):
+                skipped.append(clip.name)
+                continue
             meta = clips.read_meta(clip)
             rig = StereoRig.from_json(clip / "rig.json")
             sides = [s for s in clips.SIDES if clips.crops_file(clip, s).is_file()]
@@ -106,7 +136,8 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
                         predict_hand(net, clip, side, rig).to_npz(clips.hand_file(tmp, side, "labels"))
                     record = {side: {"id": mano.model_id(mano.load_builtin(side)), "source": "builtin"} for side in sides}
                     source = {"name": clip.name, "digest": clips.clip_digest(clip)}
-                    clips.write_meta(tmp, **{**meta, "labelled_by": f"esther predict ({net.config.name})", "mano_model": record, "source_clip": source})
+                    clips.write_meta(tmp, **{**meta, "labelled_by": f"esther predict ({net.config.name})", "mano_model": record, "source_clip": source,
+                                                     "network": network})
                     final = out_dir / clip.name
                     if final.exists():
                         shutil.rmtree(final)
@@ -116,7 +147,7 @@ def predict_folders(model_dir: str | pathlib.Path, clip_dirs: list[str | pathlib
             done.append(clip.name)
         except Exception as err:  # a bad clip never stops the batch
             failed.append({"clip": str(clip), "error": f"{type(err).__name__}: {err}"})
-    return {"predicted": done, "failed": failed, "out": str(out_dir)}
+    return {"predicted": done, "skipped": skipped, "failed": failed, "out": str(out_dir)}
 
 
 __all__ = ["PREDICT_BATCH", "predict_folders", "predict_hand"]

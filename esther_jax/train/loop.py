@@ -681,6 +681,8 @@ def train_stages(
     validation_windows: int = 48,
     seed: int = 0,
     features: str | pathlib.Path | None = None,
+    labels: str | pathlib.Path | None = None,
+    init: str | pathlib.Path | None = None,
     progress: bool = True,
 ) -> pathlib.Path:
     """The two training stages ("Training and Supervision", appendix B): stage 1 ('image') trains the image encoder
@@ -692,12 +694,16 @@ def train_stages(
     (`learning_rate`; stage 1's `stage1_learning_rate` if given). `stage1_frames_apart`
     draws stage 1's frames apart (`TrainConfig.frames_apart`). `features`: a feature
     cache of the (frozen) backbone both stages read instead of the crops
-    (`DataConfig.features`), filled by the first. Returns the final model folder."""
+    (`DataConfig.features`), filled by the first. `labels`: train on the teacher's label
+    folder (`DataConfig.targets = 'labels'`) instead of the clips' ground truth. `init`: a
+    run (or model folder) whose network starts the first stage trained, instead of a fresh
+    one (the data engine's warm start). Returns the final model folder."""
     out = pathlib.Path(out)
     if stage1_steps < 0 or stage2_steps < 0 or stage1_steps + stage2_steps == 0:
         raise ValueError(f"stage steps must be >= 0 and not both 0, got {stage1_steps} and {stage2_steps}")
-    data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, features=None if features is None else str(features))
-    last = None
+    data_cfg = data_lib.DataConfig(frames=model_cfg.num_frames, crop_size=model_cfg.crop_size, features=None if features is None else str(features),
+                                   **({} if labels is None else {"targets": "labels", "labels": str(labels)}))  # fmt: skip
+    last = init
     stages = (("image", stage1_steps, "stage1", learning_rate if stage1_learning_rate is None else stage1_learning_rate, stage1_frames_apart),
               ("joint", stage2_steps, "stage2", learning_rate, False))  # fmt: skip
     for stage, steps, name, rate, frames_apart in stages:
