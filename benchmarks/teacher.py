@@ -1,7 +1,7 @@
 """The teacher: compilation and cache reuse, accuracy and speed across rigs, and its solvers
 side by side, with the public `fitting` API only.
 
-    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|step|refine|all] [--quick]
+    python benchmarks/teacher.py [--clips 4] [--frames 64] [--section compile|sweep|solvers|step|refine|prior|all] [--quick]
 
 1. Compile / cache (issue 11, point 6). Each measurement runs in a fresh process
    (`--child`) given a fresh temporary directory through `esther_jax.enable_compilation_cache`:
@@ -39,6 +39,9 @@ side by side, with the public `fitting` API only.
    perturbed as a poor network's prediction against the teacher on the same hands:
    hand-frames/s, coverage, P-MPJPE (also on the frames both accept), accepted labels
    worse than 15 mm; target: refine >= 5x the teacher's throughput.
+6. Pose priors (`--section prior`, issue 49): the learned prior (`mano.GMMPosePrior`)
+   against the PCA + joint-limit prior inside the teacher and inside refine: coverage,
+   rejection rate, P-MPJPE, wrist and accepted labels worse than 15 mm on the same hands.
 
 `--quick` is a smoke run (1 clip of 32 frames; section 1 only when asked for by
 `--section compile`, then on 32-frame clips); the targets are for the full settings.
@@ -435,25 +438,48 @@ def step_section(frames: int):
 # ----------------------------------------------------------------------------- main
 
 
+def _perturbed_start(gt: dict, rng: np.random.Generator) -> mano.ManoParams:
+    """A hand's ground truth perturbed as a poor network's prediction: 0.15 rad per joint
+    angle and frame, 3 cm of wrist, 0.5 per beta."""
+    T = gt["transl"].shape[0]
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return mano.ManoParams(f32(gt["global_orient"] + rng.normal(scale=0.15, size=(T, 3))), f32(gt["hand_pose"] + rng.normal(scale=0.15, size=(T, 15, 3))),
+                           f32(np.broadcast_to(gt["betas"] + rng.normal(scale=0.5, size=10), (T, 10))), f32(gt["transl"] + rng.normal(scale=0.03, size=(T, 3))))  # fmt: skip
+
+
+def accepted(rows: list[dict], same: list[np.ndarray] | None = None) -> dict:
+    """The accepted on-screen frames of many hands' `frame_rows`: coverage, mean P-MPJPE
+    and wrist (mm), how many are worse than 15 mm; `same`: per hand, frames to also
+    average P-MPJPE over (those another method accepts too)."""
+    cat = {k: np.concatenate([h[k] for h in rows]) for k in ("p_mpjpe", "wrist", "valid", "onscreen")}
+    ok = cat["valid"] & cat["onscreen"]
+    out = {"coverage": ok.sum() / cat["onscreen"].sum(), "p_mpjpe": np.mean(cat["p_mpjpe"][ok]), "wrist": np.mean(cat["wrist"][ok]),
+           "worse": int(np.sum(ok & (cat["p_mpjpe"] > 15.0)))}  # fmt: skip
+    if same is not None:
+        out["p_mpjpe_same"] = np.mean(np.concatenate([h["p_mpjpe"][b] for h, b in zip(rows, same)]))
+    return out
+
+
+def _hands(seed: int, clips: int, frames: int) -> list:
+    cfg = synth.SynthConfig(num_frames=frames, motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    return [(c, side) for c in (synth.make_clip(seed, i, cfg) for i in range(clips)) for side in c.keypoints]
+
+
+def _runs(pose_prior=None) -> dict:
+    return {"teacher": lambda c, side, start: fitting.label_hand(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"], pose_prior=pose_prior),
+            "refine": lambda c, side, start: fitting.refine(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"], start,
+                                                            pose_prior=pose_prior)}  # fmt: skip
+
+
 def refine_section(clips: int, frames: int, seed: int = 2000):
     """`fitting.refine` against the teacher on the same hands: each hand's ground truth
-    perturbed as a poor network's prediction (0.15 rad per joint angle and frame, 3 cm of
-    wrist, 0.5 per beta) is refined; throughput in hand-frames/s (compilation apart) and
-    accuracy on the frames both accept."""
+    perturbed as a poor network's prediction (`_perturbed_start`) is refined; throughput
+    in hand-frames/s (compilation apart) and accuracy on the frames both accept."""
     print(f"\n== refine against the teacher: {clips} synthetic clips of {frames} frames, both hands, start = perturbed ground truth")
-    cfg = synth.SynthConfig(num_frames=frames, motion_config=motion.MotionConfig(two_hands_probability=1.0))
-    hands = [(c, side) for c in (synth.make_clip(seed, i, cfg) for i in range(clips)) for side in c.keypoints]
+    hands = _hands(seed, clips, frames)
     rng = np.random.default_rng(0)
-
-    def prediction(gt):
-        T = gt["transl"].shape[0]
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        return mano.ManoParams(f32(gt["global_orient"] + rng.normal(scale=0.15, size=(T, 3))), f32(gt["hand_pose"] + rng.normal(scale=0.15, size=(T, 15, 3))),
-                               f32(np.broadcast_to(gt["betas"] + rng.normal(scale=0.5, size=10), (T, 10))), f32(gt["transl"] + rng.normal(scale=0.03, size=(T, 3))))  # fmt: skip
-
-    starts = [prediction(c.gt[side]) for c, side in hands]
-    runs = {"teacher": lambda c, side, start: fitting.label_hand(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"]),
-            "refine": lambda c, side, start: fitting.refine(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"], start)}  # fmt: skip
+    starts = [_perturbed_start(c.gt[side], rng) for c, side in hands]
+    runs = _runs()
     rows, seconds = {}, {}
     for name, run in runs.items():
         run(*hands[0], starts[0])  # compilation apart
@@ -463,21 +489,47 @@ def refine_section(clips: int, frames: int, seed: int = 2000):
     total = sum(len(r["valid"]) for r in rows["teacher"])
     both = [t["valid"] & r["valid"] & t["onscreen"] for t, r in zip(rows["teacher"], rows["refine"])]
     for name in runs:
-        cat = {k: np.concatenate([h[k] for h in rows[name]]) for k in ("p_mpjpe", "wrist", "valid", "onscreen")}
-        same = np.concatenate([h["p_mpjpe"][b] for h, b in zip(rows[name], both)])
-        ok = cat["valid"] & cat["onscreen"]
-        print(f"{name:<8} {total / seconds[name]:8.0f} hand-frames/s   coverage {ok.sum() / cat['onscreen'].sum():6.1%}   "
-              f"P-MPJPE {np.mean(cat['p_mpjpe'][ok]):5.2f} mm (on the frames both accept {np.mean(same):5.2f})   wrist {np.mean(cat['wrist'][ok]):5.2f} mm   "
-              f"accepted worse than 15 mm: {np.sum(ok & (cat['p_mpjpe'] > 15.0))}")  # fmt: skip
+        a = accepted(rows[name], both)
+        print(f"{name:<8} {total / seconds[name]:8.0f} hand-frames/s   coverage {a['coverage']:6.1%}   "
+              f"P-MPJPE {a['p_mpjpe']:5.2f} mm (on the frames both accept {a['p_mpjpe_same']:5.2f})   wrist {a['wrist']:5.2f} mm   "
+              f"accepted worse than 15 mm: {a['worse']}")  # fmt: skip
     ratio = seconds["teacher"] / seconds["refine"]
     print("refine / teacher throughput: " + target("refine throughput", ratio, 5.0, "x", at_most=False))
+
+
+def prior_section(clips: int, frames: int, seed: int = 3000, train_clips: int = 16):
+    """The learned pose prior (`mano.GMMPosePrior`, 8 components) against the PCA +
+    joint-limit prior, inside the teacher and inside `refine` (from `_perturbed_start`), on
+    the same held-out hands. Two mixtures: fitted to the synthetic engine's articulation
+    (other draws than the clips'), and to the teacher's accepted labels of `train_clips`
+    other clips (left hands mirrored), what a user without our engine's motion has."""
+    print(f"\n== pose priors: {clips} held-out clips of {frames} frames, both hands; mixtures of 8 components")
+    t0 = time.perf_counter()
+    synthetic = mano.fit_gmm_pose_prior(motion.sample_hand_poses(seed + 1, 300, 90), components=8)
+    poses = []
+    for c, side in _hands(seed + 2, train_clips, frames):
+        labels, _ = fitting.label_hand(mano.load_builtin(side), c.rig, c.keypoints[side], c.meta["fps"])
+        pose = np.asarray(labels.params.hand_pose)[np.asarray(labels.valid)]
+        poses.append(pose if side == "right" else np.asarray(mano.mirror_hand_pose(jnp.asarray(pose))))
+    from_labels = mano.fit_gmm_pose_prior(np.concatenate(poses), components=8)
+    print(f"  fitted in {time.perf_counter() - t0:.0f} s (the teacher's labels: {sum(len(p) for p in poses)} poses of {train_clips} clips)")
+    hands = _hands(seed, clips, frames)
+    rng = np.random.default_rng(0)
+    starts = [_perturbed_start(c.gt[side], rng) for c, side in hands]
+    priors = {"PCA + limits": None, "GMM, synthetic motion": synthetic, "GMM, teacher labels": from_labels}
+    print(f"  {'method':<8} {'prior':<22} {'coverage':>8} {'rejected':>8} {'P-MPJPE':>8} {'wrist':>7} {'>15 mm':>7}")
+    for method in ("teacher", "refine"):
+        for name, prior in priors.items():
+            run = _runs(prior)[method]
+            a = accepted([frame_rows(run(c, side, start)[0], c.gt[side]) for (c, side), start in zip(hands, starts)])
+            print(f"  {method:<8} {name:<22} {a['coverage']:8.1%} {1 - a['coverage']:8.1%} {a['p_mpjpe']:8.2f} {a['wrist']:7.2f} {a['worse']:7d}")
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clips", type=int, default=4)
     parser.add_argument("--frames", type=int, default=64)
-    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "step", "refine", "all"), default="all")
+    parser.add_argument("--section", choices=("compile", "sweep", "solvers", "step", "refine", "prior", "all"), default="all")
     parser.add_argument("--solvers", nargs="+", choices=fitting.SOLVERS, default=fitting.SOLVERS, help="section 3's solvers")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 clip of 32 frames, section 1 only when asked for")
     parser.add_argument("--child", choices=("cold", "warm"), help=argparse.SUPPRESS)
@@ -501,6 +553,8 @@ def main():
         step_section(args.frames)
     if args.section in ("refine", "all"):
         refine_section(args.clips, args.frames)
+    if args.section in ("prior", "all"):
+        prior_section(args.clips, args.frames)
     if TARGETS:
         print("\nsummary:")
         for what, text, _ in TARGETS:

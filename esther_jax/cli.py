@@ -2,6 +2,7 @@
 
 import argparse
 import dataclasses
+import functools
 import pathlib
 import sys
 
@@ -11,8 +12,8 @@ from .files import check_out_dir, write_json
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:  # before minutes of work: the output folder must be a writable folder (crops writes into its clips; train
-        # creates and locks its run folder at once, and removes it again when the run fails to start)
-        if args.command not in ("crops", "train"):
+        # creates and locks its run folder at once, and removes it again when the run fails to start; prior writes a file)
+        if args.command not in ("crops", "train", "prior"):
             check_out_dir(args.out)
     except ValueError as err:
         print(f"esther {args.command}: {err}", file=sys.stderr)
@@ -232,7 +233,17 @@ def _label_parser(commands) -> None:
         help="fit your official MANO models, DIR/MANO_RIGHT.pkl and DIR/MANO_LEFT.pkl (or DIR/models/...), "
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
+    label.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
+                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
+    label.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior --out FILE) in place of the hand model's PCA prior (the joint limits stay)")
     label.set_defaults(run=_label)
+
+
+def _pose_prior(path: str | None):
+    """The learned pose prior of `--pose-prior FILE` (None without one)."""
+    from .mano import GMMPosePrior
+
+    return None if path is None else GMMPosePrior.load(path)
 
 
 def _label(args) -> int:
@@ -245,7 +256,9 @@ def _label(args) -> int:
     try:
         rejects = read_reject_list(args.reject) if args.reject else frozenset()
         models, sources = _mano_models(args.mano) if args.mano else (None, None)
-        result = label_clips(clips, args.out, resume=args.resume, rejects=rejects, models=models, model_sources=sources)
+        job = functools.partial(label_clips, out_dir=args.out, resume=args.resume, rejects=rejects, models=models, model_sources=sources,
+                                pose_prior=_pose_prior(args.pose_prior))  # fmt: skip
+        result = _per_clip(job, clips, args.ray, "label", _LABELS_EMPTY)
     except (OSError, ValueError) as err:  # unwritable --out, clashing clip names, bad reject list or MANO file
         print(f"esther label: {err}", file=sys.stderr)
         return 2
@@ -254,6 +267,19 @@ def _label(args) -> int:
             for sheet in review_clip(next(c for c in clips if c.name == summary["clip"]), pathlib.Path(args.out)):
                 print(f"review sheet: {sheet}")
     return _report_labels("labelled", result, pathlib.Path(args.out))
+
+
+_LABELS_EMPTY = {"labelled": [], "skipped": [], "failed": [], "hand_frames": 0, "seconds": 0.0}
+"""`label_clips`' result of no clip."""
+
+
+def _per_clip(job, clip_dirs: list[pathlib.Path], ray_address: str | None, desc: str, empty: dict) -> dict:
+    """The batch function `job` over `clip_dirs`: in this process, or one Ray task per clip (`--ray`)."""
+    if ray_address is None:
+        return job(clip_dirs)
+    from .cluster import map_clips
+
+    return map_clips(job, clip_dirs, address=ray_address, desc=desc, empty=empty)
 
 
 def _report_labels(verb: str, result: dict, out: pathlib.Path) -> int:
@@ -278,6 +304,9 @@ def _refine_parser(commands) -> None:
                                                              "written there with --model, else read from there")  # fmt: skip
     refine.add_argument("--out", required=True, help="output folder, the teacher's format (<clip>/hands/<side>/labels.npz, quality.json)")
     refine.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and refined from the same prediction")
+    refine.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
+                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
+    refine.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior --out FILE) in place of the hand model's PCA prior (the joint limits stay)")
     refine.set_defaults(run=_refine)
 
 
@@ -291,14 +320,17 @@ def _refine(args) -> int:
         return 2
     predictions = pathlib.Path(args.predictions) if args.predictions else pathlib.Path(args.out) / ".predictions"
     try:
+        pose_prior = _pose_prior(args.pose_prior)
         if args.model:
-            predicted = predict_folders(args.model, clip_dirs, predictions, resume=args.resume)
+            job = functools.partial(predict_folders, args.model, out_dir=predictions, resume=args.resume)
+            predicted = _per_clip(job, clip_dirs, args.ray, "predict", {"predicted": [], "skipped": [], "failed": []})
             for failure in predicted["failed"]:
                 print(f"FAILED to predict {failure['clip']}: {failure['error']}", file=sys.stderr)
         elif not predictions.is_dir():
             print(f"esther refine: no predictions in {predictions}: pass --model RUN (or --predictions DIR of esther predict)", file=sys.stderr)
             return 2
-        result = refine_clips(clip_dirs, predictions, args.out, resume=args.resume)
+        job = functools.partial(refine_clips, predictions=predictions, out_dir=args.out, resume=args.resume, pose_prior=pose_prior)
+        result = _per_clip(job, clip_dirs, args.ray, "refine", _LABELS_EMPTY)
     except (OSError, ValueError) as err:  # no saved network, unwritable --out, clashing clip names
         print(f"esther refine: {err}", file=sys.stderr)
         return 2
@@ -506,6 +538,8 @@ def _crops_parser(commands) -> None:
     crops.add_argument("--strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
                        help="rectification of the crops (appendix M), as esther synth --crop-strategy")  # fmt: skip
     crops.add_argument("--overwrite", action="store_true", help="replace crops made by esther synth or with other settings")
+    crops.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
+                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
     crops.set_defaults(run=_crops)
 
 
@@ -516,7 +550,8 @@ def _crops(args) -> int:
     if clip_dirs is None:
         return 2
     try:
-        result = crop_clips(clip_dirs, CropConfig(size=args.size, strategy=args.strategy), labels=args.labels, overwrite=args.overwrite)
+        job = functools.partial(crop_clips, cfg=CropConfig(size=args.size, strategy=args.strategy), labels=args.labels, overwrite=args.overwrite)
+        result = _per_clip(job, clip_dirs, args.ray, "crops", {"cropped": [], "skipped": [], "failed": []})
     except ValueError as err:  # settings out of range, no labels folder
         print(f"esther crops: {err}", file=sys.stderr)
         return 2
@@ -579,6 +614,42 @@ def _mano_models(folder: str) -> tuple[dict, dict[str, str]]:
     return models, sources
 
 
+def _prior_parser(commands) -> None:
+    prior = commands.add_parser("prior", help="fit a learned pose prior (a Gaussian mixture) to labels and/or the synthetic engine's motion")
+    prior.add_argument("--out", required=True, help="the prior's file (.npz): esther label / refine --pose-prior read it")
+    prior.add_argument("--labels", nargs="+", metavar="DIR", help="label folders (esther label --out): their accepted frames' poses")
+    prior.add_argument("--synthetic", type=int, default=0, metavar="SEQUENCES",
+                       help="also this many 3-second sequences of the synthetic engine's articulation (default 0)")
+    prior.add_argument("--components", type=int, default=8, help="mixture components (default 8)")
+    prior.add_argument("--iterations", type=int, default=100, help="EM iterations (default 100)")
+    prior.add_argument("--seed", type=int, default=0)
+    prior.set_defaults(run=_prior)
+
+
+def _prior(args) -> int:
+    import numpy as np
+
+    from .clips import accepted_hand_poses
+    from .data.motion import sample_hand_poses
+    from .mano import fit_gmm_pose_prior
+
+    if not args.labels and args.synthetic <= 0:
+        print("esther prior: nothing to fit: give --labels DIR... and/or --synthetic SEQUENCES", file=sys.stderr)
+        return 2
+    try:
+        poses = [accepted_hand_poses(d) for d in args.labels or []]
+        if args.synthetic > 0:
+            poses.append(sample_hand_poses(args.seed, args.synthetic).astype(np.float32))
+        poses = np.concatenate(poses)
+        prior = fit_gmm_pose_prior(poses, components=args.components, iterations=args.iterations, seed=args.seed)
+        path = prior.save(args.out)
+    except (OSError, ValueError) as err:  # unreadable labels (ClipFormatError), too few poses
+        print(f"esther prior: {err}", file=sys.stderr)
+        return 2
+    print(f"fitted a {args.components}-component pose prior to {len(poses)} poses -> {path}")
+    return 0
+
+
 def _engine_parser(commands) -> None:
     from .engine import EngineConfig
     from .model.config import CONFIGS
@@ -600,6 +671,7 @@ def _engine_parser(commands) -> None:
     engine.add_argument("--frames-apart", action="store_true", help="stage 1 draws each example's frames apart")
     engine.add_argument("--warm-start", action="store_true", help="a later round starts from the previous round's network (default: from scratch)")
     engine.add_argument("--seed", type=int, default=d.seed, help="seed of the teacher's share and of the training")
+    engine.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior) for the teacher and the refinement")
     engine.set_defaults(run=_engine)
 
 
@@ -613,7 +685,7 @@ def _engine(args) -> int:
     try:
         cfg = EngineConfig(config=args.config, teacher_share=args.teacher_share, stage1_steps=args.stage1_steps, stage2_steps=args.stage2_steps,
                            batch=args.batch, learning_rate=args.lr, stage1_learning_rate=args.stage1_lr, frames_apart=args.frames_apart,
-                           warm_start=args.warm_start, seed=args.seed)  # fmt: skip
+                           warm_start=args.warm_start, seed=args.seed, pose_prior=args.pose_prior)  # fmt: skip
         records = run_engine(clip_dirs, args.out, cfg, rounds=args.rounds, val_dirs=val, features=args.features)
     except (OSError, ValueError) as err:  # a bad plan, another engine on --out, a resume with other options
         print(f"esther engine: {err}", file=sys.stderr)
@@ -631,7 +703,7 @@ def _engine(args) -> int:
 
 
 _COMMANDS = (_demo_parser, _evaluate_parser, _synth_parser, _detect_parser, _import_hot3d_parser, _crops_parser, _label_parser,
-             _train_parser, _predict_parser, _refine_parser, _engine_parser)  # fmt: skip
+             _train_parser, _predict_parser, _refine_parser, _prior_parser, _engine_parser)  # fmt: skip
 """The commands in `esther --help`'s order: each function adds one's parser."""
 
 

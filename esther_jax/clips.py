@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .files import atomic_output, read_json, write_json
-from .mano import ManoParams
+from .mano import ManoParams, mirror_hand_pose
 
 SIDES = ("right", "left")
 
@@ -340,6 +340,21 @@ def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:
     if (root / "hands").is_dir():
         return [root]
     return sorted(p for p in root.iterdir() if (p / "hands").is_dir())
+
+
+def accepted_hand_poses(labels_root: str | pathlib.Path) -> Float[np.ndarray, "n 15 3"]:
+    """The hand poses (axis-angle, radians) of every accepted (`valid`) frame of the
+    labels under `labels_root` (`<clip>/hands/<side>/labels.npz`), as right hands: left
+    hands' poses mirrored (`mano.mirror_hand_pose`). What a learned pose prior is fitted to."""
+    poses = []
+    for labels_dir in list_clips(labels_root):
+        for side in SIDES:
+            path = hand_file(labels_dir, side, "labels")
+            if path.is_file():
+                labels = Labels.from_npz(path)
+                pose = np.asarray(labels.params.hand_pose)[np.asarray(labels.valid, bool)]
+                poses.append(pose if side == "right" else np.asarray(mirror_hand_pose(jnp.asarray(pose))))
+    return np.concatenate(poses) if poses else np.zeros((0, 15, 3), np.float32)
 
 
 def iter_video(path: str | pathlib.Path) -> Iterator[np.ndarray]:

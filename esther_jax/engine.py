@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import clips, metrics
+from . import clips, mano, metrics
 from . import model as M
 from . import train as train_lib
 from .files import check_out_dir, exclusive_lock, read_json, write_json
@@ -74,6 +74,8 @@ class EngineConfig:
     """Round k >= 1 starts from round k-1's network (else from a fresh one, seeded as round 0's)."""
     seed: int = 0
     """Seed of the teacher's share (which clips) and of every round's training."""
+    pose_prior: str | None = None
+    """A learned pose prior's file (`esther prior`) for the teacher and the refinement; None: the PCA prior."""
 
     def __post_init__(self):
         if not 0.0 < self.teacher_share <= 1.0:
@@ -246,7 +248,8 @@ def _round(out, number, clip_dirs, plan, cfg, val_dirs, features, progress) -> d
     by_name = {c.name: c for c in clip_dirs}
     taught = set(plan["teacher_clips"])
     started = time.time()
-    result = label_clips([by_name[n] for n in sorted(taught)], out / "teacher", resume=True, progress=progress)
+    pose_prior = None if cfg.pose_prior is None else mano.GMMPosePrior.load(cfg.pose_prior)
+    result = label_clips([by_name[n] for n in sorted(taught)], out / "teacher", resume=True, progress=progress, pose_prior=pose_prior)
     failures = list(result["failed"])
     sources = {n: out / "teacher" / n for n in _finished(out / "teacher")}
     others = [c for c in clip_dirs if c.name not in taught]
@@ -257,7 +260,7 @@ def _round(out, number, clip_dirs, plan, cfg, val_dirs, features, progress) -> d
         failures += predicted["failed"]
         ready = [c for c in others if c.name in _finished(here / "predictions")]
         if ready:
-            failures += refine_clips(ready, here / "predictions", here / "refined", resume=True, progress=progress)["failed"]
+            failures += refine_clips(ready, here / "predictions", here / "refined", resume=True, progress=progress, pose_prior=pose_prior)["failed"]
         sources.update({n: here / "refined" / n for n in _finished(here / "refined")})
     labels = _link_labels(here / "labels", sources)
     init = _final_model(round_dir(out, number - 1) / "run") if number > 0 and cfg.warm_start else None

@@ -89,7 +89,7 @@ def _clip_lock(out_dir: pathlib.Path, name: str, *, wait: bool):
     return exclusive_lock(out_dir / f".{name}.lock", wait=wait)
 
 
-def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, predictions=None) -> dict:
+def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, predictions=None, pose_prior=None) -> dict:
     """`label_clip` with the clip's lock held: nobody else writes `out_dir/<clip>`."""
     meta = clips.read_meta(clip_dir)
     rig = StereoRig.from_json(clip_dir / "rig.json")
@@ -103,10 +103,11 @@ def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, pre
     try:
         source = {"name": clip_dir.name, "digest": clips.clip_digest(clip_dir)}
         origin = None if predictions is None else prediction_record(pathlib.Path(predictions), clip_dir.name, sides)
-        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary, predictions)
+        _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, model_sources, summary, predictions, pose_prior)
         # replaces any "mano_model" of the input clip's meta (that one describes its gt.npz)
         recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
         made = {"labelled_by": "esther teacher"} if origin is None else {"labelled_by": "esther refine", "prediction": origin}
+        made["pose_prior"] = pose_prior_record(pose_prior)
         clips.write_meta(tmp, **{**meta, **made, "mano_model": recorded, "source_clip": source})
         if final.exists():
             shutil.rmtree(final)
@@ -153,7 +154,7 @@ def prediction_record(predictions: pathlib.Path, clip: str, sides: list[str]) ->
     return {"folder": str(predictions.resolve()), "labelled_by": made_by, "sha256": digest.hexdigest()}
 
 
-def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary, predictions=None) -> None:
+def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sources, summary, predictions=None, pose_prior=None) -> None:
     keypoints, hand_models, records, monocular = {}, {}, {}, {}
     for side in sides:
         keypoints[side] = clips.load_npz(clips.hand_file(clip_dir, side, "keypoints"), "keypoints")
@@ -169,7 +170,7 @@ def _label_sides(clip_dir, tmp, sides, meta, rig, config, rejects, models, sourc
     share = len({record["source"] == "builtin" for record in records.values()}) == 1
     start = None if predictions is None else {side: clips.Labels.from_npz(clips.hand_file(pathlib.Path(predictions) / clip_dir.name, side, "labels")).params
                                               for side in sides}  # fmt: skip
-    results = label_hands(hand_models, rig, keypoints, float(meta["fps"]), config, monocular, share_shape=share, predictions=start)
+    results = label_hands(hand_models, rig, keypoints, float(meta["fps"]), config, monocular, share_shape=share, predictions=start, pose_prior=pose_prior)
     for side in sides:
         labels, report = results[side]
         record = records[side]
@@ -200,6 +201,7 @@ def label_clips(
     models: dict[str, mano.ManoModel] | None = None,
     model_sources: dict[str, str] | None = None,
     predictions: str | pathlib.Path | None = None,
+    pose_prior: mano.GMMPosePrior | None = None,
 ) -> dict:
     """Label many clips; per-clip failures are collected, not raised.
 
@@ -209,6 +211,9 @@ def label_clips(
     hand); labels of other models are redone. With `predictions` (`label_clip`'s; see
     `refine_clips`) a finished clip is kept only when it was refined from the same
     prediction, and labels of the teacher are not kept for it (nor refined ones without).
+    `pose_prior`: a learned pose prior in the PCA prior's place (`pipeline.label_hand`'s),
+    recorded in each clip's `meta.json` (`"pose_prior"`); `resume` keeps only labels made
+    under the same prior.
 
     Safe to run twice at once on one `out_dir`: each clip is labelled under its own lock;
     a clip another process is labelling is put back and taken last (waiting for the
@@ -238,6 +243,7 @@ def label_clips(
         )
     clip_dirs = list(dict.fromkeys(clip_dirs))
     out_dir = check_out_dir(out_dir)
+    prior = pose_prior_record(pose_prior)
     started = time.time()
     done, skipped, failed = [], [], []
     frames, seconds = 0, 0.0
@@ -249,12 +255,13 @@ def label_clips(
         with _clip_lock(out_dir, clip.name, wait=wait) as locked:
             if not locked:
                 return False
-            finished = _labelled_with(meta_path, wanted) and _made_from(meta_path, clip) and _refined_from(meta_path, clip, predictions)
+            finished = (_labelled_with(meta_path, wanted) and _made_from(meta_path, clip) and _refined_from(meta_path, clip, predictions)
+                        and _recorded(meta_path, "pose_prior") == prior)  # fmt: skip
             if finished and (resume or (wait and meta_path.stat().st_mtime >= started)):
                 skipped.append(clip.name)  # done before (--resume), or by the other process just now
                 return True
             try:
-                summary = _label_locked(clip, out_dir, config, rejects, models, model_sources, predictions)
+                summary = _label_locked(clip, out_dir, config, rejects, models, model_sources, predictions, pose_prior)
             except Exception as err:  # a bad clip never stops the batch: report it and go on
                 failed.append({"clip": str(clip), "error": f"{type(err).__name__}: {err}"})
                 return True
@@ -279,6 +286,7 @@ def refine_clips(
     progress: bool = True,
     models: dict[str, mano.ManoModel] | None = None,
     model_sources: dict[str, str] | None = None,
+    pose_prior: mano.GMMPosePrior | None = None,
 ) -> dict:
     """Refine a network's predictions (`predictions`: `esther predict`'s folder) of many
     clips into labels in the teacher's format (`esther refine`): `label_clips` with every
@@ -288,7 +296,27 @@ def refine_clips(
     if not predictions.is_dir():
         raise ValueError(f"{predictions} is not a folder of predictions (esther predict --model RUN CLIP... --out {predictions} writes one)")
     return label_clips(clip_dirs, out_dir, resume=resume, config=config, progress=progress, models=models, model_sources=model_sources,
-                       predictions=predictions)  # fmt: skip
+                       predictions=predictions, pose_prior=pose_prior)  # fmt: skip
+
+
+def pose_prior_record(pose_prior: mano.GMMPosePrior | None) -> dict | None:
+    """What labels record of the pose prior they were fitted under (`meta.json`
+    `"pose_prior"`): None for the hand model's PCA prior, else the mixture's size and the
+    sha256 of its arrays."""
+    if pose_prior is None:
+        return None
+    digest = hashlib.sha256()
+    for array in (pose_prior.means, pose_prior.factors, pose_prior.log_weights):
+        digest.update(np.ascontiguousarray(np.asarray(array, np.float32)).tobytes())
+    return {"kind": "gmm", "components": int(pose_prior.means.shape[0]), "sha256": digest.hexdigest()}
+
+
+def _recorded(meta_path: pathlib.Path, key: str):
+    """`meta.json`'s `key` (None when absent or unreadable)."""
+    try:
+        return json.loads(meta_path.read_text()).get(key)
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def _refined_from(meta_path: pathlib.Path, clip: pathlib.Path, predictions: str | pathlib.Path | None) -> bool:

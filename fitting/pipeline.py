@@ -27,6 +27,7 @@ import dataclasses
 import threading
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -175,6 +176,15 @@ def _problem(model, rig, weights, betas, fps) -> Problem:
     return Problem(model, rig, mano.PosePrior.from_model(model, betas), MotionPrior(), weights, betas, fps)
 
 
+def _with_pose_prior(problem: Problem, pose_prior: mano.GMMPosePrior | None, model: mano.ManoModel) -> Problem:
+    """The problem under a learned pose prior in the PCA prior's place (its mixture for
+    this side, with the PCA prior's joint-limit hinges); unchanged without one."""
+    if pose_prior is None:
+        return problem
+    learned = pose_prior.for_side(model.is_right).with_limits(problem.pose_prior)
+    return eqx.tree_at(lambda p: p.pose_prior, problem, learned)
+
+
 def _initial(model, rig, evidence, betas, mono_orient, mono_has, previous) -> ev.Initial:
     """Each frame's palm pose (`evidence.initialise`), with the monocular fit's orientation
     where a frame has one."""
@@ -222,7 +232,7 @@ def _finish(model, rig, fits, fused, seen, observed, reject_px):
 
 def label_hand(
     model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, config: LabelConfig = LabelConfig(),
-    monocular: dict | None = None, shape: np.ndarray | None = None,
+    monocular: dict | None = None, shape: np.ndarray | None = None, pose_prior: mano.GMMPosePrior | None = None,
 ) -> tuple[clips.Labels, dict]:  # fmt: skip
     """Label one hand of one clip.
 
@@ -236,13 +246,15 @@ def label_hand(
         shape: optional betas locked elsewhere for the same person (`label_hands` passes
             the other hand's); used only when no frame sees this hand in both views,
             in place of the mean shape (one view cannot tell size from distance).
+        pose_prior: a learned pose prior (`mano.GMMPosePrior`, `esther prior`) in place
+            of the hand model's PCA prior (the joint-limit hinges stay); None: the PCA prior.
     Returns:
         (labels, quality): the hand's `clips.Labels` (labels.npz) and the quality.json content.
 
     Calls from several threads take turns on the CPU (`_CPU_TURNS`).
     """
     with _CPU_TURNS if jax.default_backend() == "cpu" else contextlib.nullcontext():
-        return _label_hand(model, rig, keypoints, fps, config, monocular, shape)
+        return _label_hand(model, rig, keypoints, fps, config, monocular, shape, pose_prior=pose_prior)
 
 
 REFINE_CONFIG = LabelConfig(shape_lock_rounds=2)
@@ -257,7 +269,7 @@ throughput (short of the data engine's 5x: fewer steps cost accuracy, 7 mm with 
 
 def refine(
     model: mano.ManoModel, rig: StereoRig, keypoints: dict, fps: float, prediction: mano.ManoParams,
-    config: LabelConfig = REFINE_CONFIG, shape: np.ndarray | None = None,
+    config: LabelConfig = REFINE_CONFIG, shape: np.ndarray | None = None, pose_prior: mano.GMMPosePrior | None = None,
 ) -> tuple[clips.Labels, dict]:  # fmt: skip
     """Refine a network's prediction of one hand of one clip into a label (the paper's
     model-assisted labelling, "Model-Assisted Labeling and Iterative Enhancement"): the
@@ -268,7 +280,7 @@ def refine(
     reprojection filter and label quality.
 
     Args:
-        model, rig, keypoints, fps, shape: as in `label_hand`.
+        model, rig, keypoints, fps, shape, pose_prior: as in `label_hand`.
         prediction: the network's MANO parameters per frame (rig frame, metres, radians):
             global_orient [T,3], hand_pose [T,15,3], transl [T,3], betas [T,10] (e.g.
             `clips.Labels.params` of `esther predict`); finite in every frame.
@@ -278,7 +290,7 @@ def refine(
         "prediction".
     """
     with _CPU_TURNS if jax.default_backend() == "cpu" else contextlib.nullcontext():
-        return _label_hand(model, rig, keypoints, fps, config, None, shape, prediction)
+        return _label_hand(model, rig, keypoints, fps, config, None, shape, prediction, pose_prior)
 
 
 _CPU_TURNS = threading.Lock()
@@ -289,7 +301,7 @@ runs a while loop's iterations on its thread pool and can block a pool thread in
 and wait on each other. So concurrent calls run one after another, as from one thread."""
 
 
-def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction=None) -> tuple[clips.Labels, dict]:
+def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction=None, pose_prior=None) -> tuple[clips.Labels, dict]:
     D, T = check_keypoints(keypoints, fps)
     if prediction is not None:
         prediction = check_prediction(prediction, T, model.num_betas)
@@ -320,7 +332,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction
     timings["fuse_filter_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    problem = _problem(model, rig, weights, zeros, fps_t)
+    problem = _with_pose_prior(_problem(model, rig, weights, zeros, fps_t), pose_prior, model)
     if prediction is None:  # the teacher: the palm pose search, the mean (or monocular) pose
         init, pose0 = _start(model, rig, evidence, zeros, dev["mono_orient"], dev["mono_pose"], mono_has)
         start = stages.start_fits(init, pose0, zeros)
@@ -344,7 +356,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction
         raise ValueError(f"shape must be betas of shape ({model.num_betas},), got {np.shape(shape)}")
     borrowed = jnp.asarray(shape if has_shape else np.zeros(model.num_betas), dtype)
     betas = jnp.where(lock.from_monocular & has_shape, borrowed, lock.betas)
-    problem = _problem(model, rig, weights, betas, fps_t)
+    problem = _with_pose_prior(_problem(model, rig, weights, betas, fps_t), pose_prior, model)
     init = _restart(model, rig, evidence, betas, dev["mono_orient"], mono_has, init)
     data = stages.frame_data(evidence, init, problem)
     fits = stages.fit_frames(problem, data, lock.fits, stiff_pose=config.stiff_pose, **solver)
@@ -430,7 +442,7 @@ def _package(out: dict, T: int, model: mano.ManoModel, mono_has, config: LabelCo
 def label_hands(
     models: dict[str, mano.ManoModel], rig: StereoRig, keypoints: dict[str, dict], fps: float,
     config: LabelConfig = LabelConfig(), monocular: dict[str, dict | None] | None = None, *, share_shape: bool = True,
-    predictions: dict[str, mano.ManoParams] | None = None,
+    predictions: dict[str, mano.ManoParams] | None = None, pose_prior: mano.GMMPosePrior | None = None,
 ) -> dict[str, tuple[clips.Labels, dict]]:  # fmt: skip
     """Label the hands of one clip (`label_hand` per side), the two hands as one person's:
     a hand that no frame sees in both views takes the shape locked on the other hand when
@@ -442,6 +454,7 @@ def label_hands(
         share_shape: False labels each hand on its own (models of different shape spaces).
         predictions: per side, a network's prediction to `refine` instead of labelling
             from scratch (every side of `keypoints` needs one).
+        pose_prior: a learned pose prior for both hands (`label_hand`'s).
     Returns:
         {side: (labels, quality report)}; each report's "seconds" is the time spent on
         that hand (both passes when it took the other hand's shape).
@@ -454,9 +467,9 @@ def label_hands(
     def one(side: str, shape=None, spent: float = 0.0) -> tuple[clips.Labels, dict]:
         t0 = time.perf_counter()
         if predictions is None:
-            labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape)
+            labels, report = label_hand(models[side], rig, keypoints[side], fps, config, monocular.get(side), shape=shape, pose_prior=pose_prior)
         else:
-            labels, report = refine(models[side], rig, keypoints[side], fps, predictions[side], config, shape=shape)
+            labels, report = refine(models[side], rig, keypoints[side], fps, predictions[side], config, shape=shape, pose_prior=pose_prior)
         report["seconds"] = spent + time.perf_counter() - t0
         return labels, report
 

@@ -210,6 +210,20 @@ def articulation(rng: np.random.Generator, T: int, cfg: MotionConfig, frames: np
     return np.einsum("jai,tji->tja", frames, angles)
 
 
+def sample_hand_poses(seed: int, num_sequences: int, frames: int = 90, cfg: MotionConfig = MotionConfig()) -> np.ndarray:
+    """(num_sequences * frames, 15, 3) right-hand poses (axis-angle, radians) of the
+    synthetic engine's articulation (`articulation`), each sequence of `frames` frames
+    drawn from `seed`'s generator: data for a learned pose prior (`esther prior --synthetic`)."""
+    axes = _anatomical_frames(mano.load_builtin("right"))
+    rng = np.random.default_rng(seed)
+    return np.concatenate([articulation(rng, frames, cfg, axes) for _ in range(num_sequences)])
+
+
+def _anatomical_frames(model: mano.ManoModel) -> np.ndarray:
+    """(15, 3, 3) the model's anatomical joint frames at its template (what `articulation` poses in)."""
+    return np.asarray(mano.anatomical_frames(model.joint_template, model.v_template[model.fingertip_ids], model.is_right), np.float64)
+
+
 def _box_object(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """A held box: 8 corners in the hand frame (metres) and its 6 quad faces."""
     size = rng.uniform([0.03, 0.03, 0.06], [0.07, 0.06, 0.14])
@@ -262,7 +276,7 @@ def sample_clip(rng: np.random.Generator, rig: StereoRig, num_frames: int, cfg: 
     T = num_frames
     models = {"right": mano.load_builtin("right"), "left": mano.load_builtin("left")}
     right = models["right"]
-    frames = np.asarray(mano.anatomical_frames(right.joint_template, right.v_template[right.fingertip_ids], right.is_right), np.float64)
+    frames = _anatomical_frames(right)
     axes = hand_axes(right)
     sides = ["right", "left"] if rng.uniform() < cfg.two_hands_probability else [str(rng.choice(["right", "left"]))]
     betas = rng.normal(size=10) * cfg.shape_sd

@@ -2,9 +2,9 @@
 
 Public names: `ManoModel`, `ManoParams`, `ManoOutput`, `forward`, `forward_batch`, `forward_joints`,
 `joints_jacobian`, `forward_joints_with_jacobian`, `JointsJacobian`, `forward_rotations`, `with_shape`, `with_pose`, `with_rotations`,
-`rest_joints`, `load_builtin`, `load_mano_pkl`, `save_mano_pkl`, `model_id`, `mirror_params`,
+`rest_joints`, `load_builtin`, `load_mano_pkl`, `save_mano_pkl`, `model_id`, `mirror_params`, `mirror_hand_pose`,
 `mirror_points`, `to_smplx`, `from_smplx`, `transform_params`, `pca_to_hand_pose`, `hand_pose_to_pca`,
-`export_mesh`, `anatomical_frames`, `JOINT_LIMITS`, `PosePrior`, and the joint-order constants.
+`export_mesh`, `anatomical_frames`, `JOINT_LIMITS`, `PosePrior`, `GMMPosePrior`, `fit_gmm_pose_prior`, and the joint-order constants.
 """
 
 from .anatomy import JOINT_LIMITS as JOINT_LIMITS
@@ -21,6 +21,7 @@ from .constants import MANO_JOINT_NAMES as MANO_JOINT_NAMES
 from .constants import MANO_PARENTS as MANO_PARENTS
 from .constants import PALM_KEYPOINTS as PALM_KEYPOINTS
 from .conventions import from_smplx as from_smplx
+from .conventions import mirror_hand_pose as mirror_hand_pose
 from .conventions import mirror_params as mirror_params
 from .conventions import mirror_points as mirror_points
 from .conventions import to_smplx as to_smplx
@@ -47,4 +48,6 @@ from .model import ManoParams as ManoParams
 from .model import model_id as model_id
 from .pca import hand_pose_to_pca as hand_pose_to_pca
 from .pca import pca_to_hand_pose as pca_to_hand_pose
+from .priors import GMMPosePrior as GMMPosePrior
 from .priors import PosePrior as PosePrior
+from .priors import fit_gmm_pose_prior as fit_gmm_pose_prior

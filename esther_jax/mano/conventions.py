@@ -27,6 +27,12 @@ def mirror_points(points: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
     return points * _along_last_axis(_POINT_MIRROR, points)
 
 
+def mirror_hand_pose(hand_pose: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    """The mirror image of rotation vectors: (x, y, z) -> (x, -y, -z) (a right hand's
+    joint rotations become the left model's, and back)."""
+    return hand_pose * _along_last_axis(_AXIS_ANGLE_MIRROR, hand_pose)
+
+
 def mirror_params(params: ManoParams) -> ManoParams:
     """The mirror-image hand: rotation vectors (x, y, z) -> (x, -y, -z), wrist x -> -x.
 
@@ -34,8 +40,8 @@ def mirror_params(params: ManoParams) -> ManoParams:
     the identity. Any leading batch axes are kept.
     """
     return ManoParams(
-        global_orient=params.global_orient * _along_last_axis(_AXIS_ANGLE_MIRROR, params.global_orient),
-        hand_pose=params.hand_pose * _along_last_axis(_AXIS_ANGLE_MIRROR, params.hand_pose),
+        global_orient=mirror_hand_pose(params.global_orient),
+        hand_pose=mirror_hand_pose(params.hand_pose),
         betas=params.betas,
         transl=mirror_points(params.transl),
     )

@@ -1,0 +1,109 @@
+"""Per-clip jobs on a Ray cluster (`esther_jax.cluster`, `--ray`): the same labels as one
+process, nothing lost when a worker dies mid-clip, nothing lost or duplicated with two
+drivers on one output folder. Skipped without the `ray` extra."""
+
+import functools
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+ray = pytest.importorskip("ray")
+
+from esther_jax import cli, clips, cluster  # noqa: E402
+from esther_jax.data import motion, synth  # noqa: E402
+from esther_jax.files import exclusive_lock  # noqa: E402
+import fitting  # noqa: E402
+
+FRAMES = 32  # the teacher's length bucket of tests/test_fitting.py: compiled once
+
+
+@pytest.fixture(scope="module")
+def raw(tmp_path_factory) -> list[pathlib.Path]:
+    cfg = synth.SynthConfig(num_frames=FRAMES, detector_preset="easy", motion_config=motion.MotionConfig(two_hands_probability=1.0))
+    root = tmp_path_factory.mktemp("cluster")
+    return [synth.write_clip(synth.make_clip(41, i, cfg), root / "raw" / f"clip_{i:05d}") for i in range(3)]
+
+
+@pytest.fixture(scope="module")
+def one_process(raw, tmp_path_factory) -> pathlib.Path:
+    out = tmp_path_factory.mktemp("one_process") / "labels"
+    assert not fitting.label_clips(raw, out, progress=False)["failed"]
+    return out
+
+
+@pytest.fixture(scope="module")
+def local_cluster():
+    """A two-CPU Ray instance on this machine for the module (map_clips uses it as found)."""
+    os.environ.update(cluster.USAGE_STATS)
+    ray.init(num_cpus=2, runtime_env={"env_vars": cluster.worker_environment(1)}, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield ray.get_runtime_context().gcs_address
+    ray.shutdown()
+
+
+def _same_labels(a: pathlib.Path, b: pathlib.Path, names: list[str]) -> None:
+    for name in names:
+        for side in clips.SIDES:
+            pa, pb = clips.hand_file(a / name, side, "labels"), clips.hand_file(b / name, side, "labels")
+            assert pa.is_file() == pb.is_file()
+            if pa.is_file():
+                x, y = clips.load_npz(pa, "labels"), clips.load_npz(pb, "labels")
+                for key in x:
+                    np.testing.assert_allclose(np.asarray(x[key], np.float64), np.asarray(y[key], np.float64), rtol=1e-5, atol=1e-6, err_msg=f"{name}/{side}/{key}")
+    leftovers = [p.name for p in b.iterdir() if ".partial" in p.name]
+    assert not leftovers, f"partial folders left: {leftovers}"
+
+
+def test_labels_on_ray_equal_one_process(raw, one_process, local_cluster, tmp_path, capsys):
+    out = tmp_path / "labels"
+    code = cli.main(["label", *map(str, raw), "--out", str(out), "--ray", local_cluster])
+    assert code == 0, capsys.readouterr().err
+    assert "labelled 3 clips" in capsys.readouterr().out
+    _same_labels(one_process, out, [c.name for c in raw])
+    summary = (out / "label_summary.json").read_text()
+    assert all(c.name in summary for c in raw)
+
+
+def test_a_worker_killed_mid_clip_loses_nothing(raw, one_process, local_cluster, tmp_path):
+    out, marker, victim = tmp_path / "labels", tmp_path / "died", raw[1].name
+    out.mkdir()
+
+    def dies_once(clip_dirs, progress):
+        """Label; the first time the victim clip comes, die in the middle of it: its partial folder written, its lock held."""
+        if clip_dirs[0].name == victim and not marker.exists():
+            marker.touch()
+            with exclusive_lock(out / f".{victim}.lock"):
+                partial = out / f".{victim}.partial-dying"
+                (partial / "hands" / "right").mkdir(parents=True)
+                (partial / "hands" / "right" / "labels.npz").write_bytes(b"half a file")
+                os._exit(1)  # the worker process dies (Ray retries the task on another)
+        return fitting.label_clips(clip_dirs, out, progress=progress)
+
+    result = cluster.map_clips(dies_once, raw, address=local_cluster, progress=False, empty={"labelled": [], "failed": []})
+    assert marker.exists(), "the worker did not die: nothing was tested"
+    assert not result["failed"] and sorted(r["clip"] for r in result["labelled"]) == [c.name for c in raw]
+    _same_labels(one_process, out, [c.name for c in raw])
+
+
+def test_two_drivers_on_one_folder_lose_and_duplicate_nothing(raw, one_process, local_cluster, tmp_path):
+    out = tmp_path / "labels"
+    command = [sys.executable, "-m", "esther_jax.cli", "label", *map(str, raw), "--out", str(out), "--resume", "--ray", local_cluster]
+    env = {**os.environ, **cluster.USAGE_STATS}
+    drivers = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for _ in range(2)]
+    outputs = [d.communicate(timeout=600) for d in drivers]
+    assert all(d.returncode == 0 for d in drivers), [o[1][-2000:] for o in outputs]
+    labelled = [int(o[0].split("labelled ")[1].split(" clips")[0]) for o in outputs]
+    assert sum(labelled) == len(raw), outputs  # each clip labelled once, by one driver or the other
+    _same_labels(one_process, out, [c.name for c in raw])
+
+
+def test_clashing_names_are_refused_and_results_merge(raw, tmp_path):
+    twin = synth.write_clip(synth.make_clip(41, 0, synth.SynthConfig(num_frames=FRAMES)), tmp_path / "other" / raw[0].name)
+    job = functools.partial(fitting.label_clips, out_dir=tmp_path / "labels")
+    with pytest.raises(ValueError, match="share the name"):
+        cluster.map_clips(job, [raw[0], twin], address="local")
+    assert cluster.merge_results([{"a": [1], "n": 2, "out": "x"}, {"a": [2], "n": 3, "out": "y"}], {"a": [], "b": []}) == {
+        "a": [1, 2], "b": [], "n": 5, "out": "x"}  # fmt: skip
