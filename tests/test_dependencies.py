@@ -13,6 +13,7 @@ Two checks:
 """
 
 import ast
+import functools
 import importlib.metadata
 import importlib.util
 import json
@@ -78,8 +79,15 @@ def _closure(requirements: list[str]) -> set[str]:
     return {name for name, _ in seen}
 
 
+@functools.cache
+def _packages_distributions() -> dict[str, list[str]]:
+    """Top-level module -> distributions (one scan of the installed distributions: a scan per
+    import statement took a minute)."""
+    return importlib.metadata.packages_distributions()
+
+
 def _distributions(module: str) -> set[str]:
-    found = importlib.metadata.packages_distributions().get(module)
+    found = _packages_distributions().get(module)
     return {canonicalize_name(d) for d in found} if found else {canonicalize_name(IMPORT_NAMES.get(module, module))}
 
 
@@ -163,7 +171,7 @@ def _loaded(mediapipe: bool) -> list[str]:
 
 def _undeclared(modules: list[str], requirements: list[str], allowed: frozenset[str] = frozenset()) -> list[str]:
     installed = _closure(requirements) | allowed | GUARDED
-    mapping = importlib.metadata.packages_distributions()
+    mapping = _packages_distributions()
     return [f"{m} (from {sorted(mapping[m])})" for m in modules if _third_party(m) and m in mapping and not {canonicalize_name(d) for d in mapping[m]} & installed]
 
 

@@ -18,7 +18,7 @@ from esther_jax import model as M
 from esther_jax.data import synth
 
 pytestmark = pytest.mark.slow
-TRAIN = ["--config", "cpu-tiny", "--stage", "joint", "--batch", "2", "--checkpoint-every", "2", "--validate-every", "1000"]
+TRAIN = ["--config", "cpu-tiny", "--stage", "image", "--batch", "2", "--checkpoint-every", "2", "--validate-every", "1000"]
 
 
 def _free_port() -> int:
@@ -60,7 +60,7 @@ def _interrupted_after(run: pathlib.Path, step: int) -> None:
 
 
 def test_two_processes_train_what_one_trains_and_resume(tmp_path):
-    cfg = synth.SynthConfig(num_frames=32, crops=True, crop_size=64)
+    cfg = synth.SynthConfig(num_frames=16, crops=True, crop_size=64)
     data = tmp_path / "clips"
     for i in range(2):
         synth.write_clip(synth.make_clip(61, i, cfg), data / f"clip_{i:05d}")

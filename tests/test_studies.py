@@ -94,7 +94,7 @@ def _check_report(out: pathlib.Path, study: str) -> dict:
 STUDY_OF = {
     "01_size_depth_binding": "size_depth_binding", "02_missing_views": "missing_views", "03_dropped_frames": "dropped_frames",
     "04_corruptions": "corruptions", "05_undistortion": "undistortion", "06_gate": "gate", "07_ablations": "ablations",
-    "08_teacher_validation": "teacher_validation",
+    "08_teacher_validation": "teacher_validation", "09_data_engine": "data_engine",
 }  # fmt: skip
 
 
