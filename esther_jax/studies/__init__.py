@@ -5,8 +5,9 @@ The package stands above every other (the apps' floor, beside the CLI and the de
 study trains (`esther_jax.train`), labels (`fitting`), synthesizes (`esther_jax.data`)
 and scores (`esther_jax.eval`), and nothing below imports it. Its modules beside the
 runners here: `attention` (the cross-view attention probe of figure 7), `baselines`
-(the triangulation baseline of table 2) and `teacher_validation` (the teacher against
-exact ground truth, appendices I and N).
+(the triangulation baseline of table 2), `teacher_validation` (the teacher against
+exact ground truth, appendices I and N) and `data_engine` (the engine's rounds measured
+on a raw collection whose ground truth is held aside).
 
 - **Scale** (`StudyScale`, `scale_from_env`): `smoke` (untrained `cpu-tiny` networks on
   a few tiny clips: every study's pipeline and report in seconds, what the tests execute;
