@@ -233,10 +233,14 @@ def _label_parser(commands) -> None:
         help="fit your official MANO models, DIR/MANO_RIGHT.pkl and DIR/MANO_LEFT.pkl (or DIR/models/...), "
         "instead of the built-in hand; the labels record which model they are parameters of",
     )  # fmt: skip
-    label.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
-                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
+    _ray_flag(label)
     label.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior --out FILE) in place of the hand model's PCA prior (the joint limits stay)")
     label.set_defaults(run=_label)
+
+
+def _ray_flag(parser) -> None:
+    parser.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
+                                                   "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
 
 
 def _pose_prior(path: str | None):
@@ -304,8 +308,7 @@ def _refine_parser(commands) -> None:
                                                              "written there with --model, else read from there")  # fmt: skip
     refine.add_argument("--out", required=True, help="output folder, the teacher's format (<clip>/hands/<side>/labels.npz, quality.json)")
     refine.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and refined from the same prediction")
-    refine.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
-                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
+    _ray_flag(refine)
     refine.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior --out FILE) in place of the hand model's PCA prior (the joint limits stay)")
     refine.set_defaults(run=_refine)
 
@@ -354,10 +357,13 @@ def _write_label_summary(out: pathlib.Path, result: dict) -> None:
 
 def _detect_parser(commands) -> None:
     detect = commands.add_parser("detect", help="stereo videos (or image folders) + rig.json -> a clip folder with 2D keypoints")
-    detect.add_argument("--left", required=True, help="the left view: a video file or a folder of images (sorted by name)")
-    detect.add_argument("--right", required=True, help="the right view, same number of frames")
-    detect.add_argument("--rig", required=True, help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
-    detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it)")
+    detect.add_argument("recordings", nargs="*", metavar="RECORDING",
+                        help="recording folders (rig.json beside left/ and right/ image folders or left.mp4 and right.mp4): each becomes "
+                             "--out/<recording>; or give one recording's --left, --right and --rig")  # fmt: skip
+    detect.add_argument("--left", help="the left view: a video file or a folder of images (sorted by name)")
+    detect.add_argument("--right", help="the right view, same number of frames")
+    detect.add_argument("--rig", help="rig.json (docs/architecture.md, 'File formats'): the calibration of both views")
+    detect.add_argument("--out", required=True, help="the clip folder to write (esther label reads it); with RECORDINGs, the folder of their clips")
     detect.add_argument("--detector", action="append", metavar="NAME",
                         help="mediapipe (default; the detect extra; each image and its mirror), mediapipe:direct (the image only, "
                              "half the time), onnx:MODEL.onnx (a YOLO-pose hand model you own) or "
@@ -367,19 +373,46 @@ def _detect_parser(commands) -> None:
     detect.add_argument("--rectify", default="offbb120", choices=["offbb120", "offbb90", "offbb150"],
                         help="fisheye views are undistorted to this wide pinhole for detection (appendix M), keypoints mapped back")  # fmt: skip
     detect.add_argument("--videos", default="link", choices=["link", "copy", "encode"], help="how the clip's video/*.mp4 are made (image folders: encoded)")
+    detect.add_argument("--resume", action="store_true", help="with RECORDINGs: skip those whose clip is complete (detected by the same detectors)")
+    _ray_flag(detect)
     detect.set_defaults(run=_detect)
 
 
 def _detect(args) -> int:
     from .clips import ClipFormatError
-    from .detect import DetectorUnavailable, detect_clip
+    from .detect import DetectorUnavailable, detect_clip, detect_recordings
 
+    detectors = tuple(args.detector or ["mediapipe"])
+    one = [flag for flag in ("left", "right", "rig") if getattr(args, flag) is not None]
+    if args.recordings and one:
+        print(f"esther detect: give RECORDING folders or --left, --right and --rig, not both (got both and --{', --'.join(one)})", file=sys.stderr)
+        return 2
+    if not args.recordings and len(one) < 3:
+        print("esther detect: give RECORDING folders, or one recording's --left, --right and --rig", file=sys.stderr)
+        return 2
+    if not args.recordings and (args.resume or args.ray):
+        print("esther detect: --resume and --ray are for RECORDING folders (one clip resumes from its saved frames by itself)", file=sys.stderr)
+        return 2
     try:
-        report = detect_clip(args.left, args.right, args.rig, args.out, detectors=tuple(args.detector or ["mediapipe"]), fps=args.fps,
-                             strategy=args.rectify, videos=args.videos)  # fmt: skip
+        if args.recordings:
+            job = functools.partial(detect_recordings, out_dir=args.out, detectors=detectors, fps=args.fps, strategy=args.rectify,
+                                    videos=args.videos, resume=args.resume)  # fmt: skip
+            result = _per_clip(job, [pathlib.Path(r) for r in args.recordings], args.ray, "detect",
+                               {"detected": [], "skipped": [], "failed": []})  # fmt: skip
+        else:
+            report = detect_clip(args.left, args.right, args.rig, args.out, detectors=detectors, fps=args.fps, strategy=args.rectify,
+                                 videos=args.videos)  # fmt: skip
     except (DetectorUnavailable, ClipFormatError, OSError, ValueError, RuntimeError) as err:
         print(f"esther detect: {err}", file=sys.stderr)
         return 2
+    if args.recordings:
+        for failure in result["failed"]:
+            print(f"FAILED {failure['clip']}: {failure['error']}", file=sys.stderr)
+        for clip in result["detected"]:
+            print(f"{clip['clip']}: {clip['frames']} frames, sides {', '.join(clip['sides']) or 'none'}")
+        print(f"detected {len(result['detected'])} recordings, skipped {len(result['skipped'])}, failed {len(result['failed'])} "
+              f"-> {pathlib.Path(args.out).resolve()} (next: esther label {args.out} --out LABELS)")  # fmt: skip
+        return 1 if result["failed"] else 0
     for name, frames in report["frames_with_hands"].items():
         tracks = report["handedness"][name]["tracks"]
         dropped = sum(t["side"] == "dropped" for t in tracks)
@@ -538,8 +571,7 @@ def _crops_parser(commands) -> None:
     crops.add_argument("--strategy", default="offbb120", choices=["offbb120", "offbb90", "offbb150", "hc"],
                        help="rectification of the crops (appendix M), as esther synth --crop-strategy")  # fmt: skip
     crops.add_argument("--overwrite", action="store_true", help="replace crops made by esther synth or with other settings")
-    crops.add_argument("--ray", metavar="ADDRESS", help="one task per clip on a Ray cluster: local (a private instance on this machine), auto (the "
-                                                  "cluster ray start runs here, else local) or HOST:PORT; the optional extra 'ray'")
+    _ray_flag(crops)
     crops.set_defaults(run=_crops)
 
 

@@ -119,3 +119,29 @@ def test_clashing_names_are_refused_and_results_merge(raw, tmp_path):
         cluster.map_clips(job, [raw[0], twin], address="local")
     assert cluster.merge_results([{"a": [1], "n": 2, "out": "x"}, {"a": [2], "n": 3, "out": "y"}], {"a": [], "b": []}) == {
         "a": [1, 2], "b": [], "n": 5, "out": "x"}  # fmt: skip
+
+
+def test_detection_on_ray_equals_one_process(local_cluster, tmp_path):
+    """`detect_recordings` as one Ray task per recording (what `esther detect REC... --ray`
+    runs) writes the keypoints one process writes, with test_detect's exact detector."""
+    from esther_jax import cameras
+    from esther_jax.detect import detect_recordings
+
+    from . import test_detect
+
+    ray.cloudpickle.register_pickle_by_value(test_detect)  # its detector travels to the workers with the task
+    cfg = synth.SynthConfig(num_frames=test_detect.FRAMES, detector_preset="clean",
+                            motion_config=motion.MotionConfig(two_hands_probability=1.0, leave_view_probability=0.0))  # fmt: skip
+    hands = {side: gt["joints"].astype(np.float64) for side, gt in synth.make_clip(5, 0, cfg).gt.items()}
+    rig = cameras.rig_preset("esther")
+    recordings = [test_detect._recording(tmp_path / "recordings" / f"rec_{i}", rig) for i in range(2)]
+    job = functools.partial(detect_recordings, detectors=("truth",), fps=30.0, factories={"truth": test_detect._factory(hands, rig, [])})
+    here = job(recordings, out_dir=tmp_path / "one", progress=False)
+    there = cluster.map_clips(functools.partial(job, out_dir=tmp_path / "ray"), recordings, address=local_cluster, progress=False,
+                              empty={"detected": [], "skipped": [], "failed": []})  # fmt: skip
+    assert not there["failed"] and sorted(c["clip"] for c in there["detected"]) == sorted(c["clip"] for c in here["detected"]) == ["rec_0", "rec_1"]
+    for name in ("rec_0", "rec_1"):
+        for side in clips.SIDES:
+            a, b = (clips.load_npz(clips.hand_file(tmp_path / root / name, side, "keypoints"), "keypoints") for root in ("one", "ray"))
+            for key in a:
+                np.testing.assert_array_equal(a[key], b[key])

@@ -12,6 +12,7 @@ import importlib
 import importlib.util
 import json
 import pathlib
+import shutil
 from types import SimpleNamespace
 
 import cv2
@@ -20,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esther_jax import cameras, clips, crops
+from esther_jax import cameras, cli, clips, crops
 from esther_jax.data import motion, synth
 from esther_jax.detect import Candidates, HandDetection, assign_hands, chirality, detect_clip
 from esther_jax.detect.base import keypoint_box, merge_mirror_pass, same_hand, unmirror
@@ -260,6 +261,55 @@ def test_detect_clip_refuses_a_second_writer_and_bad_input(tmp_path, two_hands):
     cv2.imwrite(str(small / "0.png"), np.zeros((10, 10), np.uint8))
     with pytest.raises(ValueError, match="rig's camera is 1920x1200"):
         detect_clip(small, small, rig, tmp_path / "w", **kwargs)
+
+
+def _recording(folder: pathlib.Path, rig: cameras.StereoRig) -> pathlib.Path:
+    """A recording folder: rig.json beside left/ and right/ image folders."""
+    folder.mkdir(parents=True)
+    left, right = _folders(folder, rig)
+    left.rename(folder / "left")
+    right.rename(folder / "right")
+    rig.to_json(folder / "rig.json", "esther")
+    return folder
+
+
+def test_detect_recordings_detects_each_reports_failures_and_resumes(tmp_path, two_hands):
+    from esther_jax.detect import detect_recordings, recording_views
+
+    rig = cameras.rig_preset("esther")
+    good = [_recording(tmp_path / "recordings" / name, rig) for name in ("rec_a", "rec_b")]
+    broken = _recording(tmp_path / "recordings" / "rec_c", rig)
+    shutil.rmtree(broken / "right")
+    calls: list = []
+    kwargs = dict(detectors=("truth",), fps=30.0, progress=False, factories={"truth": _factory(two_hands, rig, calls)})
+    result = detect_recordings([*good, broken], tmp_path / "clips", **kwargs)
+    assert [c["clip"] for c in result["detected"]] == ["rec_a", "rec_b"] and result["skipped"] == []
+    assert result["failed"] == [{"clip": "rec_c", "error": f"ClipFormatError: {broken} has no right view: a folder right/ of images or a video "
+                                                            "right.mp4 (.mp4, .avi, .mov, .mkv)"}]  # fmt: skip
+    assert all(c["sides"] == ["right", "left"] and c["frames"] == FRAMES for c in result["detected"])
+    single = detect_clip(*recording_views(good[0]), tmp_path / "single", **kwargs)  # the one-clip path gives the same keypoints
+    assert single["sides"] == ["right", "left"]
+    for side in ("right", "left"):
+        a, b = (clips.load_npz(clips.hand_file(root, side, "keypoints"), "keypoints") for root in (tmp_path / "clips" / "rec_a", tmp_path / "single"))
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key])
+    calls.clear()
+    again = detect_recordings([*good, broken], tmp_path / "clips", resume=True, **kwargs)
+    assert again["skipped"] == ["rec_a", "rec_b"] and not again["detected"] and not calls and len(again["failed"]) == 1
+    (good[1] / "left.mp4").write_bytes(b"")  # a second left view: which one is meant?
+    with pytest.raises(clips.ClipFormatError, match="ambiguous"):
+        recording_views(good[1])
+    with pytest.raises(ValueError, match="share the name"):
+        detect_recordings([good[0], _recording(tmp_path / "elsewhere" / "rec_a", rig)], tmp_path / "other", **kwargs)
+
+
+def test_detect_command_takes_recordings_or_one_clip(tmp_path, capsys):
+    assert cli.main(["detect", "--out", str(tmp_path / "x")]) == 2
+    assert "RECORDING folders, or one recording's --left" in capsys.readouterr().err
+    assert cli.main(["detect", str(tmp_path), "--left", "a", "--out", str(tmp_path / "x")]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert cli.main(["detect", "--left", "a", "--right", "b", "--rig", "c", "--resume", "--out", str(tmp_path / "x")]) == 2
+    assert "for RECORDING folders" in capsys.readouterr().err
 
 
 def test_opencv_check_names_the_fix(monkeypatch):

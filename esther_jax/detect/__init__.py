@@ -9,7 +9,8 @@
   (ViTPose and the like) (`onnx`).
 - `assign_hands`, `chirality`: left/right from stereo geometry and time (`handedness`).
 - `detect_clip`: stereo videos or image folders + rig -> a clip folder (`clip`),
-  the library side of `esther detect`.
+  the library side of `esther detect`; `detect_recordings`, its batch form over
+  recording folders (`recording_views`), what `esther detect REC... --ray` spreads.
 """
 
 from .base import Candidates as Candidates
@@ -17,7 +18,9 @@ from .base import HandDetection as HandDetection
 from .base import KeypointDetector as KeypointDetector
 from .clip import FrameSource as FrameSource
 from .clip import detect_clip as detect_clip
+from .clip import detect_recordings as detect_recordings
 from .clip import make_detector as make_detector
+from .clip import recording_views as recording_views
 from .handedness import assign_hands as assign_hands
 from .handedness import chirality as chirality
 from .mediapipe import DetectorUnavailable as DetectorUnavailable

@@ -15,6 +15,11 @@ right hands are assigned by `handedness.assign_hands`.
 Long runs are safe: every `checkpoint_every` frames are saved once, as a chunk of `out/.detect/`
 (atomic writes) and a rerun continues from there; a lock stops a second `esther detect`
 writing the same clip; the clip's files appear only once complete.
+
+Many recordings: `detect_recordings(recordings, out_dir)` (`esther detect REC... --out DIR`,
+one Ray task per recording with `--ray`) runs `detect_clip` on each recording folder
+(`recording_views`: `rig.json` beside the left and right views) into `out_dir/<recording>`,
+reporting a failing recording and going on, and skipping finished ones with `resume`.
 """
 
 import dataclasses
@@ -36,6 +41,8 @@ from .base import Candidates, HandDetection, KeypointDetector
 from .handedness import assign_hands
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
+"""A recording's view as one video file: `left.mp4`, `right.mov`, ... (`recording_views`)."""
 
 
 class FrameSource:
@@ -329,3 +336,77 @@ def _write_videos(sources: tuple[FrameSource, FrameSource], out: pathlib.Path, f
             os.replace(tmp, target)
         else:
             clips.write_video(target, iter(source), fps)
+
+
+def recording_views(recording: str | pathlib.Path) -> tuple[pathlib.Path, pathlib.Path, pathlib.Path]:
+    """A recording folder's (left view, right view, rig.json): each view a folder of
+    images (`left/`, `right/`) or one video file (`left.mp4`, ..., `VIDEO_SUFFIXES`),
+    beside the rig's `rig.json`. `ClipFormatError` naming what is missing or ambiguous."""
+    folder = pathlib.Path(recording)
+    if not folder.is_dir():
+        raise clips.ClipFormatError(f"{folder} is not a folder (a recording holds rig.json and its left and right views)")
+    rig = folder / "rig.json"
+    if not rig.is_file():
+        raise clips.ClipFormatError(f"{folder} has no rig.json (the calibration of both views)")
+    views = []
+    for view in ("left", "right"):
+        found = [p for p in (folder / view, *(folder / f"{view}{suffix}" for suffix in VIDEO_SUFFIXES)) if p.exists()]
+        if not found:
+            raise clips.ClipFormatError(f"{folder} has no {view} view: a folder {view}/ of images or a video {view}.mp4 ({', '.join(VIDEO_SUFFIXES)})")
+        if len(found) > 1:
+            raise clips.ClipFormatError(f"{folder}: its {view} view is ambiguous ({', '.join(p.name for p in found)}); keep one")
+        views.append(found[0])
+    return views[0], views[1], rig
+
+
+def detect_recordings(
+    recordings: list[str | pathlib.Path],
+    out_dir: str | pathlib.Path,
+    *,
+    detectors: tuple[str, ...] = ("mediapipe",),
+    fps: float | None = None,
+    strategy: str = "offbb120",
+    videos: str = "link",
+    resume: bool = False,
+    progress: bool = True,
+    factories: dict | None = None,
+) -> dict:
+    """`detect_clip` on every recording folder (`recording_views`) into
+    `out_dir/<recording name>`, the batch form of `esther detect` (and a Ray task per
+    recording with `--ray`: `esther_jax.cluster.map_clips`).
+
+    A recording that fails (a missing view, an unreadable video or rig.json, views of
+    different lengths, another process writing its clip) is reported under "failed" and
+    the others go on; a detector that is not installed (`DetectorUnavailable`) stops the
+    run. With `resume`, a recording whose clip is complete (its `meta.json` records a
+    detection by the same detectors) is skipped; an interrupted one continues from its
+    saved chunks either way. Other arguments: `detect_clip`'s.
+
+    Returns:
+        {"detected": [{"clip", "sides", "frames"}], "skipped": [names], "failed": [{"clip", "error"}], "out": str}.
+    """
+    from .mediapipe import DetectorUnavailable
+
+    recordings = list(dict.fromkeys(pathlib.Path(r) for r in recordings))
+    names: dict[str, pathlib.Path] = {}
+    for recording in recordings:
+        if names.setdefault(recording.name, recording) != recording:
+            raise ValueError(f"two recordings share the name {recording.name!r}: {names[recording.name]} and {recording}; their clips would overwrite each other")
+    out_dir = check_out_dir(out_dir)
+    result: dict = {"detected": [], "skipped": [], "failed": [], "out": str(out_dir)}
+    for recording in tqdm(recordings, desc="detect", unit="recording", disable=not progress or len(recordings) < 2):
+        clip = out_dir / recording.name
+        if resume and (clip / "meta.json").is_file() and clips.read_meta(clip).get("detect", {}).get("detectors") == list(detectors):
+            result["skipped"].append(recording.name)
+            continue
+        try:
+            left, right, rig = recording_views(recording)
+            report = detect_clip(left, right, rig, clip, detectors=detectors, fps=fps, strategy=strategy, videos=videos,
+                                 progress=progress and len(recordings) == 1, factories=factories)  # fmt: skip
+        except DetectorUnavailable:
+            raise
+        except (clips.ClipFormatError, OSError, ValueError, RuntimeError) as err:
+            result["failed"].append({"clip": recording.name, "error": f"{type(err).__name__}: {err}"})
+            continue
+        result["detected"].append({"clip": recording.name, "sides": report["sides"], "frames": clips.read_meta(clip)["num_frames"]})
+    return result
