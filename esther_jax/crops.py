@@ -11,6 +11,7 @@ import typing
 
 import cv2
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -123,7 +124,29 @@ def rectified_crop(
       image. The chain fisheye -> undistort -> crop -> resize is one crop camera.
     - `hc`: a ray-aligned hand crop: the crop camera looks along the ray of the box
       centre and its focal is chosen so the padded box just fills the crop.
+
+    The crop is framed by the rays of the box outline inside the camera's valid field of
+    view. A box reaching far beyond a fisheye image (a hand at the edge of its field of
+    view) can keep only a ray or two there, which frame a degenerate crop (an infinite
+    focal); its crop is then framed by the box clipped to the image, or, were that
+    degenerate too, by the whole image.
     """
+    if not (strategy.startswith("offbb") or strategy == "hc"):
+        raise ValueError(f"unknown rectification strategy {strategy!r}; choose one of {RECTIFICATION_STRATEGIES}")
+    image = jnp.asarray([0.0, 0.0, camera.width - 1.0, camera.height - 1.0], box.dtype)
+    clipped = jnp.concatenate([jnp.maximum(box[:2], image[:2]), jnp.minimum(box[2:], image[2:])])
+    clipped = jnp.where(jnp.all(clipped[2:] > clipped[:2]), clipped, image)  # a box wholly outside the image
+    crop = _framed_crop(camera, image, strategy, size, padding)
+    for framing in (clipped, box):  # the first of box, clipped box, image that frames a proper crop
+        candidate = _framed_crop(camera, framing, strategy, size, padding)
+        focal = jnp.stack([candidate.camera.fx, candidate.camera.fy])
+        proper = jnp.all(jnp.isfinite(focal) & (focal > 0)) & jnp.all(jnp.isfinite(candidate.camera.K))
+        crop = jax.tree.map(lambda a, b: jnp.where(proper, a, b), candidate, crop)
+    return crop
+
+
+def _framed_crop(camera: AbstractCamera, box: Float[Array, "4"], strategy: str, size: int, padding: float) -> Crop:
+    """`rectified_crop` framed by the valid rays of `box`'s outline (possibly degenerate)."""
     outline, outline_ok = camera.unproject_with_validity(box_outline(box))  # rays of the box outline, camera frame
     # Outline pixels beyond the camera's valid field of view (fisheye corners) have
     # mirrored rays that would blow the box up: leave them out (unless all are).
@@ -133,16 +156,14 @@ def rectified_crop(
         projected = wide.project(outline)
         wide_box = jnp.concatenate([jnp.where(keep, projected, jnp.inf).min(axis=0), jnp.where(keep, projected, -jnp.inf).max(axis=0)])
         return crop_camera(wide, wide_box, size, padding)
-    if strategy == "hc":
-        centre_ray = camera.unproject(0.5 * (box[:2] + box[2:]))
-        R = _look_at_rotation(centre_ray)
-        in_crop = outline @ R  # rays in the crop frame (R^T x)
-        tangent = jnp.abs(in_crop[:, :2] / in_crop[:, 2:3])
-        half_extent = padding * jnp.max(jnp.where(keep, tangent, 0.0))
-        focal = (size / 2) / half_extent
-        c = (size - 1) / 2
-        return Crop(camera=PinholeCamera(focal, focal, c, c, size, size), R_cam_crop=R)
-    raise ValueError(f"unknown rectification strategy {strategy!r}; choose one of {RECTIFICATION_STRATEGIES}")
+    centre_ray = camera.unproject(0.5 * (box[:2] + box[2:]))
+    R = _look_at_rotation(centre_ray)
+    in_crop = outline @ R  # rays in the crop frame (R^T x)
+    tangent = jnp.abs(in_crop[:, :2] / in_crop[:, 2:3])
+    half_extent = padding * jnp.max(jnp.where(keep, tangent, 0.0))
+    focal = (size / 2) / half_extent
+    c = (size - 1) / 2
+    return Crop(camera=PinholeCamera(focal, focal, c, c, size, size), R_cam_crop=R)
 
 
 HAND_CROP_PADDING = 1.5

@@ -132,3 +132,23 @@ def test_wide_pinhole_table_has_the_source_image_size():
     pixels = np.array([[0.0, 0.0], [cam.width - 1.0, cam.height - 1.0], [101.0, 407.0]])
     expected = np.asarray(cam.project(wide.unproject(jnp.asarray(pixels))))
     np.testing.assert_allclose(table[pixels[:, 1].astype(int), pixels[:, 0].astype(int)], expected, atol=1e-3)
+
+
+@pytest.mark.parametrize("strategy", ["offbb120", "hc"])
+def test_a_box_far_beyond_a_fisheye_frames_a_proper_crop(strategy):
+    """A hand at the edge of Aria's field of view: its box reaches far beyond the image and
+    one outline sample lies inside the valid field of view, which framed the offbb crop
+    with an infinite focal. It is framed by the box clipped to the image instead (hc's
+    crop of the one ray was proper: kept); every crop is proper."""
+    camera = cameras.rig_preset("hot3d_aria").right
+    beyond = jnp.asarray([-19.96, -122.16, 652.45, 586.47])
+    crop = jax.jit(lambda b: crops.rectified_crop(camera, b, strategy, 64))(beyond)
+    assert np.all(np.isfinite(np.asarray(crop.camera.K))) and float(crop.camera.fx) > 0
+    if strategy == "offbb120":
+        clipped = crops.rectified_crop(camera, jnp.asarray([0.0, 0.0, camera.width - 1.0, camera.height - 1.0]), strategy, 64)
+        np.testing.assert_allclose(np.asarray(crop.camera.K), np.asarray(clipped.camera.K), rtol=1e-6)
+    outside = crops.rectified_crop(camera, jnp.asarray([-500.0, -500.0, -300.0, -300.0]), strategy, 64)
+    assert np.all(np.isfinite(np.asarray(outside.camera.K))) and float(outside.camera.fx) > 0
+    ordinary = jnp.asarray([200.0, 150.0, 320.0, 270.0])  # well inside: framed by its own outline, unchanged
+    K = jax.vmap(lambda b: crops.rectified_crop(camera, b, strategy, 64).camera.K)(jnp.stack([ordinary, beyond]))
+    assert np.all(np.isfinite(np.asarray(K))) and float(K[0, 0, 0]) > float(K[1, 0, 0])

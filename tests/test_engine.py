@@ -10,7 +10,7 @@ from esther_jax import cli, engine
 from esther_jax.data import motion, synth
 from esther_jax.files import exclusive_lock
 
-FRAMES = 32  # the teacher's length bucket of tests/test_fitting.py and test_refine.py: compiled once
+FRAMES = 16  # padded to the teacher's length bucket of tests/test_fitting.py and test_refine.py (32): compiled once
 SMOKE = engine.EngineConfig(config="cpu-tiny", teacher_share=0.3, stage1_steps=0, stage2_steps=2, batch=2)
 
 
