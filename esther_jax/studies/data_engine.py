@@ -30,7 +30,7 @@ from .. import clips, metrics
 from ..data import synth
 from ..engine import EngineConfig, run_engine
 from ..files import read_json, write_json
-from . import StudyScale
+from . import StudyScale, separated
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,7 +220,7 @@ def verdict(results: dict) -> dict:
         if len(rounds) > 1 and rounds[0].get("network") and rounds[1].get("network"):
             a, b = rounds[0]["network"]["both"], rounds[1]["network"]["both"]
             span_a, span_b = (x.get("intervals", {}).get("p_mpjpe_mm") for x in (a, b))
-            better.append(bool(b["p_mpjpe_mm"] < a["p_mpjpe_mm"] and span_a and span_b and span_b[1] < span_a[0]))
+            better.append(bool(b["p_mpjpe_mm"] < a["p_mpjpe_mm"] and separated(span_a, span_b)))
     present = lambda xs: [x for x in xs if x is not None]  # noqa: E731
     return {
         "throughput_ratio": ratios, "throughput_target_met": bool(present(ratios)) and min(present(ratios)) >= 5.0,
