@@ -2,6 +2,7 @@
 scale (as a script in this process, sharing one study root, so the networks they compare
 are trained once), one of them also through a Jupyter kernel."""
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -189,3 +190,14 @@ def test_notebook_runs_in_a_jupyter_kernel(study_env, tmp_path):
         os.environ[studies.OUT_ENV] = str(study_env)
     assert any(o.get("name") == "stdout" for cell in nb.cells if cell.cell_type == "code" for o in cell.get("outputs", []))
     assert _check_report(out, "gate")["results"]["clean"]["hand_frames"] > 0
+
+
+def test_the_first_clips_of_a_dataset_are_the_full_datasets_first(tmp_path, monkeypatch):
+    monkeypatch.setenv(studies.ROOT_ENV, str(tmp_path))
+    scale = dataclasses.replace(studies.SCALES["smoke"], clip_frames=4)
+    first = studies.dataset(scale, "heldout", count=1, progress=False)
+    assert [p.name for p in first] == ["clip_00000"] and len(list(first[0].parent.glob("clip_*"))) == 1  # made no more
+    full = studies.dataset(scale, "heldout", progress=False)
+    assert len(full) == scale.heldout_clips and full[0] == first[0]
+    with pytest.raises(ValueError, match="asked for the first 3"):
+        studies.dataset(scale, "heldout", count=3)

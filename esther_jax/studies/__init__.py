@@ -142,21 +142,27 @@ def data_config(scale: StudyScale, *, held_out: bool = False) -> data_lib.DataCo
 DATASETS = ("train", "heldout", "heldout_wide")
 
 
-def dataset(scale: StudyScale, name: str, *, rig: str = "esther", crop_strategy: str = "offbb120", progress: bool = True) -> list[pathlib.Path]:
+def dataset(
+    scale: StudyScale, name: str, *, rig: str = "esther", crop_strategy: str = "offbb120", count: int | None = None, progress: bool = True
+) -> list[pathlib.Path]:
     """The clip folders of a study dataset, synthesized on first use (resumable):
     'train', 'heldout' (the training distribution, other seeds) or 'heldout_wide'
     (`WIDE_MOTION`); another `rig` or crop `crop_strategy` makes a separate folder of
-    the same motions (same seed)."""
+    the same motions (same seed). `count` asks for only the dataset's first clips (the
+    same clips: clip i depends only on the seed and i), making no more than those."""
     if name not in DATASETS:
         raise ValueError(f"unknown study dataset {name!r}; choose one of {DATASETS}")
-    count = scale.train_clips if name == "train" else scale.heldout_clips
+    full = scale.train_clips if name == "train" else scale.heldout_clips
+    if count is not None and not 0 < count <= full:
+        raise ValueError(f"the {scale.name} studies' {name} dataset has {full} clips; asked for the first {count}")
+    count = full if count is None else count
     seed = {"train": TRAIN_SEED, "heldout": HELDOUT_SEED, "heldout_wide": WIDE_SEED}[name]
     cfg = synth.SynthConfig(num_frames=scale.clip_frames, rig=rig, crops=True, crop_size=model_config(scale).crop_size,
                             crop_strategy=crop_strategy, motion_config=WIDE_MOTION if name == "heldout_wide" else motion.MotionConfig())  # fmt: skip
     folder = name if (rig, crop_strategy) == ("esther", "offbb120") else f"{name}_{rig}_{crop_strategy}"
     out = study_root(scale) / "data" / folder
     synth.synthesize(out, count, cfg, seed=seed, progress=progress)
-    return list_clips(out)
+    return list_clips(out)[:count]
 
 
 def trained(scale: StudyScale, variant: str = "esther", *, progress: bool = True) -> M.ESTHER:

@@ -78,10 +78,7 @@ def collection(scale: StudyScale, study: EngineStudy, root: str | pathlib.Path, 
     links.mkdir(parents=True, exist_ok=True)
     for number, (rig, count) in enumerate(study.raw if name == "raw" else study.heldout):
         if rig == "esther":
-            folders = dataset(scale, "train" if name == "raw" else "heldout", progress=progress)
-            if len(folders) < count:
-                raise ValueError(f"the {scale.name} studies' {name} dataset has {len(folders)} esther clips; the engine study wants {count}")
-            folders = folders[:count]
+            folders = dataset(scale, "train" if name == "raw" else "heldout", count=count, progress=progress)
         else:
             cfg = synth.SynthConfig(num_frames=scale.clip_frames, rig=rig, crops=True, crop_size=model_config(scale).crop_size)
             seed = (RAW_SEED if name == "raw" else HELDOUT_SEED) + 100 * number
