@@ -42,6 +42,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from . import clips, mano, metrics
 from . import model as M
@@ -140,6 +141,15 @@ def _link_labels(labels: pathlib.Path, sources: dict[str, pathlib.Path]) -> path
     return labels
 
 
+def label_errors_mm(labels: clips.Labels, truth: Float[ArrayLike, "T 21 3"]) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the labels' P-MPJPE and wrist error against the true joints `truth`
+    (rig frame, metres), in millimetres: two float arrays of shape [T], every frame
+    (mask them by `labels.valid` and the truth's `onscreen`)."""
+    joints = labels.joints
+    truth = jnp.asarray(truth, joints.dtype)
+    return (np.asarray(jax.vmap(metrics.p_mpjpe)(joints, truth)) * 1000.0, np.asarray(jax.vmap(metrics.wrist_error)(joints, truth)) * 1000.0)
+
+
 def label_accuracy(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path, names: set[str]) -> dict:
     """The accepted labels of the clips `names` against their ground truth (clips with
     `hands/<side>/gt.npz`), pooled over hand-frames: `onscreen` (the truth's on-screen
@@ -163,9 +173,9 @@ def label_accuracy(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path, nam
             labels = clips.Labels.from_npz(label_path)
             ok = seen & np.asarray(labels.valid, bool)
             accepted += int(ok.sum())
-            truth = jnp.asarray(gt["joints"], labels.joints.dtype)
-            p.append(np.asarray(jax.vmap(metrics.p_mpjpe)(labels.joints, truth))[ok] * 1000.0)
-            wrist.append(np.asarray(jax.vmap(metrics.wrist_error)(labels.joints, truth))[ok] * 1000.0)
+            errors = label_errors_mm(labels, gt["joints"])
+            p.append(errors[0][ok])
+            wrist.append(errors[1][ok])
     if onscreen == 0:
         return {}
     p_all, wrist_all = (np.concatenate(x) if x else np.zeros(0) for x in (p, wrist))
@@ -176,16 +186,21 @@ def label_accuracy(clip_dirs: list[pathlib.Path], labels_root: pathlib.Path, nam
 
 def labelling_cost(labels_root: pathlib.Path, names: set[str]) -> dict:
     """Hand-frames and seconds of the labels of the clips `names` (each hand's
-    `quality.json` `seconds`: its fit, compilation included when it compiled), and their
-    ratio, hand-frames/s."""
-    frames, seconds = 0, 0.0
+    `quality.json` `seconds`: its fit, compilation included when it compiled), and two
+    rates: `hand_frames_per_s` (all frames over all seconds: what this run paid, so it
+    depends on whether its programs were compiled before, e.g. by an earlier seed in
+    the same process) and `steady_hand_frames_per_s` (all frames over the hands' count
+    times their median seconds: the rate once compiled, the same whatever ran first)."""
+    frames, per_hand = 0, []
     for name in names:
         for side in clips.SIDES:
             quality = labels_root / name / "hands" / side / "quality.json"
             if quality.is_file():
                 frames += int(clips.Labels.from_npz(clips.hand_file(labels_root / name, side, "labels")).valid.shape[0])
-                seconds += float(read_json(quality).get("seconds", 0.0))
-    return {"hand_frames": frames, "seconds": seconds, "hand_frames_per_s": frames / seconds if seconds > 0 else None}
+                per_hand.append(float(read_json(quality).get("seconds", 0.0)))
+    seconds, median = float(np.sum(per_hand)), float(np.median(per_hand)) if per_hand else 0.0
+    return {"hand_frames": frames, "hands": len(per_hand), "seconds": seconds, "hand_frames_per_s": frames / seconds if seconds > 0 else None,
+            "steady_hand_frames_per_s": frames / (len(per_hand) * median) if median > 0 else None}  # fmt: skip
 
 
 def network_accuracy(model_dir: pathlib.Path, val_dirs: list[pathlib.Path], *, batch: int = 8) -> dict:
@@ -221,11 +236,9 @@ def run_engine(
     shared by every round."""
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    clip_dirs = list(dict.fromkeys(pathlib.Path(c) for c in clip_dirs))
+    clip_dirs = clips.named_folders(clip_dirs)
     if not clip_dirs:
         raise ValueError("no clip for the engine (clip folders with hands/<side>/keypoints.npz and crops/)")
-    if len({c.name for c in clip_dirs}) < len(clip_dirs):
-        raise ValueError("two clips share a folder name: their labels would overwrite each other; rename them")
     out = check_out_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(out / ".engine.lock", wait=False) as held:
@@ -297,5 +310,5 @@ def _final_model(run: pathlib.Path) -> pathlib.Path:
     raise ValueError(f"{run} holds no trained network (stage1/model or stage2/model): the round did not finish")
 
 
-__all__ = ["ENGINE_FORMAT", "EngineConfig", "WORSE_THAN_MM", "label_accuracy", "labelling_cost", "network_accuracy", "round_dir", "run_engine",
+__all__ = ["ENGINE_FORMAT", "EngineConfig", "WORSE_THAN_MM", "label_accuracy", "label_errors_mm", "labelling_cost", "network_accuracy", "round_dir", "run_engine",
            "teacher_share"]  # fmt: skip

@@ -71,7 +71,7 @@ print(verdict)
 report_scale = dataclasses.replace(
     scale, model=study.engine.config, train_clips=results["clips"], heldout_clips=results["heldout_clips"],
     stage1_steps=study.engine.stage1_steps, stage2_steps=study.engine.stage2_steps, batch=study.engine.batch,
-    learning_rate=study.engine.learning_rate,
+    learning_rate=study.engine.learning_rate, windows=None, resamples=2000,  # the engine scores every held-out window (engine.network_accuracy)
 )  # fmt: skip
 studies.write_report(
     out, "data_engine", title="The data engine (Model-Assisted Labeling and Iterative Enhancement)", verdict=verdict, scale=report_scale,

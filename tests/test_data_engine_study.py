@@ -48,7 +48,7 @@ def test_same_frames_compares_on_the_frames_both_accepted(tmp_path):
 def _round(number, teacher_rate, refined_rate, difference, p_mpjpe, span):
     labels = {"coverage": 0.5, "accepted": 10, "p_mpjpe_mm": 3.0, "wrist_mm": 4.0, "worse_than_15mm": 0}
     record = {"round": number, "labels": {"teacher": labels, "refined": labels if number else {}, "all": labels},
-              "cost": {"teacher": {"hand_frames_per_s": teacher_rate}, "refined": {"hand_frames_per_s": refined_rate}},
+              "cost": {"teacher": {"steady_hand_frames_per_s": teacher_rate}, "refined": {"steady_hand_frames_per_s": refined_rate}},
               "network": {"both": {"p_mpjpe_mm": p_mpjpe, "intervals": {"p_mpjpe_mm": span}}}}  # fmt: skip
     if number:
         record["same_frames"] = {"p_mpjpe_difference_mm": difference}

@@ -68,7 +68,8 @@ def test_two_rounds_resume_after_an_interruption_and_keep_every_round(collection
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items()), "finished work was redone"
     r1 = json.loads((r1_dir / "round.json").read_text())
     assert r1["labels"]["all"]["coverage"] > r0["labels"]["all"]["coverage"]
-    assert r1["labels"]["refined"]["accepted"] > 0 and r1["cost"]["refined"]["hand_frames"] == 2 * 2 * FRAMES
+    assert r1["labels"]["refined"]["accepted"] > 0 and r1["cost"]["refined"]["hand_frames"] == 2 * 2 * FRAMES and r1["cost"]["refined"]["hands"] == 4
+    assert r1["cost"]["refined"]["steady_hand_frames_per_s"] > 0
     assert r1["model"].startswith(str(r1_dir)) and (r1_dir / "run" / "stage2" / "model").is_dir()
     for name in ("labels", "predictions", "refined", "run"):
         assert (r1_dir / name).is_dir()
