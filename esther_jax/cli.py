@@ -385,7 +385,7 @@ def _detect(args) -> int:
     detectors = tuple(args.detector or ["mediapipe"])
     one = [flag for flag in ("left", "right", "rig") if getattr(args, flag) is not None]
     if args.recordings and one:
-        print(f"esther detect: give RECORDING folders or --left, --right and --rig, not both (got both and --{', --'.join(one)})", file=sys.stderr)
+        print(f"esther detect: give RECORDING folders or --left, --right and --rig, not both (got RECORDING folders and --{', --'.join(one)})", file=sys.stderr)
         return 2
     if not args.recordings and len(one) < 3:
         print("esther detect: give RECORDING folders, or one recording's --left, --right and --rig", file=sys.stderr)

@@ -27,6 +27,8 @@ import os
 import pathlib
 from collections.abc import Callable
 
+from . import clips
+
 USAGE_STATS = {"RAY_USAGE_STATS_ENABLED": "0"}
 """Ray's usage statistics, off in the driver and every worker."""
 
@@ -120,15 +122,13 @@ def map_clips(
     the batch function's result of no clip (`merge_results`).
 
     Raises ValueError before any work when Ray is not installed, the address has no
-    cluster, or two clips share a folder name (their outputs would overwrite each other).
+    cluster, or two clips share a folder name (`clips.named_folders`); an exception the
+    job itself raises (one the batch functions do not report per clip, e.g. a detector
+    that is not installed) is raised here, the other tasks cancelled.
     """
     from tqdm import tqdm
 
-    clip_dirs = list(dict.fromkeys(pathlib.Path(c) for c in clip_dirs))
-    names: dict[str, pathlib.Path] = {}
-    for clip in clip_dirs:
-        if names.setdefault(clip.name, clip) != clip:
-            raise ValueError(f"two clip folders share the name {clip.name!r}: {names[clip.name]} and {clip}; their outputs would overwrite each other")
+    clip_dirs = clips.named_folders(clip_dirs)
     if cpus_per_task < 1:
         raise ValueError(f"cpus_per_task must be >= 1, got {cpus_per_task}")
     ray = _import_ray()
@@ -145,6 +145,11 @@ def map_clips(
                     clip = pending.pop(ref)
                     try:
                         results.append(ray.get(ref))
+                    except ray.exceptions.RayTaskError as err:  # the job raised: the batch functions report a bad clip, so this stops the run
+                        for other in pending:
+                            ray.cancel(other)
+                        cause = getattr(err, "cause", None)
+                        raise (cause if isinstance(cause, Exception) else err) from None
                     except ray.exceptions.RayError as err:  # its worker died on every try
                         results.append({"failed": [{"clip": str(clip), "error": f"{type(err).__name__}: {str(err).splitlines()[0]}"}]})
                     bar.update(1)

@@ -131,7 +131,7 @@ def rectified_crop(
     focal); its crop is then framed by the box clipped to the image, or, were that
     degenerate too, by the whole image.
     """
-    if not (strategy.startswith("offbb") or strategy == "hc"):
+    if strategy not in RECTIFICATION_STRATEGIES:
         raise ValueError(f"unknown rectification strategy {strategy!r}; choose one of {RECTIFICATION_STRATEGIES}")
     image = jnp.asarray([0.0, 0.0, camera.width - 1.0, camera.height - 1.0], box.dtype)
     clipped = jnp.concatenate([jnp.maximum(box[:2], image[:2]), jnp.minimum(box[2:], image[2:])])

@@ -228,20 +228,9 @@ def label_clips(
     if unknown:
         raise ValueError(f"models has unknown sides {sorted(unknown)}; use {clips.SIDES}")
     wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
-    clip_dirs = [pathlib.Path(c) for c in clip_dirs]
+    clip_dirs = clips.named_folders(clip_dirs)
     if not clip_dirs:
         raise ValueError("no clip to label (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)")
-    by_name: dict[str, list[pathlib.Path]] = {}
-    for clip in clip_dirs:
-        by_name.setdefault(clip.name, []).append(clip)
-    clashes = {name: paths for name, paths in by_name.items() if len(set(p.resolve() for p in paths)) > 1}
-    if clashes:
-        name, paths = next(iter(clashes.items()))
-        raise ValueError(
-            f"{len(clashes)} clip names are used by more than one folder, e.g. {name!r}: {', '.join(map(str, paths))}; "
-            "their labels would overwrite each other in --out: rename them or label them into different folders"
-        )
-    clip_dirs = list(dict.fromkeys(clip_dirs))
     out_dir = check_out_dir(out_dir)
     prior = pose_prior_record(pose_prior)
     started = time.time()

@@ -112,6 +112,15 @@ def test_two_drivers_on_one_folder_lose_and_duplicate_nothing(raw, one_process, 
     _same_labels(one_process, out, [c.name for c in raw])
 
 
+def test_an_error_of_the_job_itself_stops_the_run(raw, local_cluster):
+    def no_detector(clip_dirs, progress):
+        """What a batch function does not report per clip (e.g. DetectorUnavailable): it raises."""
+        raise RuntimeError("the detector is not installed")
+
+    with pytest.raises(RuntimeError, match="the detector is not installed"):
+        cluster.map_clips(no_detector, raw, address=local_cluster, progress=False)
+
+
 def test_clashing_names_are_refused_and_results_merge(raw, tmp_path):
     twin = synth.write_clip(synth.make_clip(41, 0, synth.SynthConfig(num_frames=FRAMES)), tmp_path / "other" / raw[0].name)
     job = functools.partial(fitting.label_clips, out_dir=tmp_path / "labels")

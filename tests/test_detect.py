@@ -296,6 +296,10 @@ def test_detect_recordings_detects_each_reports_failures_and_resumes(tmp_path, t
     calls.clear()
     again = detect_recordings([*good, broken], tmp_path / "clips", resume=True, **kwargs)
     assert again["skipped"] == ["rec_a", "rec_b"] and not again["detected"] and not calls and len(again["failed"]) == 1
+    (tmp_path / "clips" / "rec_a" / ".detect").mkdir()  # a re-detection interrupted: not finished
+    (tmp_path / "clips" / "rec_b" / "meta.json").write_text("{not json")  # unreadable: reported, the others go on
+    third = detect_recordings([*good, broken], tmp_path / "clips", resume=True, **kwargs)
+    assert [c["clip"] for c in third["detected"]] == ["rec_a"] and [f["clip"] for f in third["failed"]] == ["rec_b", "rec_c"]
     (good[1] / "left.mp4").write_bytes(b"")  # a second left view: which one is meant?
     with pytest.raises(clips.ClipFormatError, match="ambiguous"):
         recording_views(good[1])

@@ -58,3 +58,18 @@ def test_bad_labels_are_refused_with_the_problem_named(tmp_path):
         clips.Labels.from_npz(tmp_path / "nan.npz")
     with pytest.raises(clips.ClipFormatError, match="does not exist"):
         clips.Labels.from_npz(tmp_path / "missing.npz")
+
+
+def test_named_folders_keeps_each_folder_once_and_refuses_a_name_clash(tmp_path, monkeypatch):
+    (tmp_path / "a" / "clip").mkdir(parents=True)
+    (tmp_path / "b" / "clip").mkdir(parents=True)
+    (tmp_path / "b" / "link").symlink_to(tmp_path / "a" / "clip")
+    monkeypatch.chdir(tmp_path / "a")
+    same = clips.named_folders(["clip", tmp_path / "a" / "clip", "../a/clip", tmp_path / "b" / "link"])
+    assert same == [tmp_path / "a" / "clip", tmp_path / "b" / "link"]  # one folder three ways; a link keeps its own name
+    monkeypatch.chdir(tmp_path / "a" / "clip")
+    assert clips.named_folders(["."]) == [tmp_path / "a" / "clip"]  # "." is the folder by its name
+    with pytest.raises(ValueError, match="two recordings share the name 'clip'"):
+        clips.named_folders([tmp_path / "a" / "clip", tmp_path / "b" / "clip"], "recordings")
+    with pytest.raises(ValueError, match="no folder name"):
+        clips.named_folders(["/"])

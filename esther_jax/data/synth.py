@@ -40,7 +40,10 @@ the image and counted as seen; offbb crops are unchanged). Revision 5: skin of m
 albedos, with a broader sheen and a fine grain on the hand (`render.SKIN_TONES_LAB`,
 `render._shade`, `render.hand_skin_albedo`), and more muted backgrounds
 (`render.sample_scene`); the pixels only: motion, keypoints and ground truth are those of
-revision 4."""
+revision 4. Not incremented for the fix of `crops.rectified_crop` on boxes reaching far
+beyond a fisheye image: it changed only crops that were unusable (an infinite focal,
+which the training loader refuses by name), never a paper-rig (esther) clip; remove the
+clips the loader refuses and `synthesize` makes them anew."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -359,6 +359,21 @@ def recording_views(recording: str | pathlib.Path) -> tuple[pathlib.Path, pathli
     return views[0], views[1], rig
 
 
+def _detected_as(clip: pathlib.Path, detectors: tuple[str, ...], strategy: str, fps: float | None) -> bool:
+    """True when `clip` holds a finished detection as this run would make it: by the same
+    detectors, the same crop strategy where its views were rectified, the same frame
+    rate where one is given, and no detection in progress (`.detect/`)."""
+    if not (clip / "meta.json").is_file() or (clip / ".detect").exists():
+        return False
+    meta = clips.read_meta(clip)
+    report = meta.get("detect", {})
+    return (
+        report.get("detectors") == list(detectors)
+        and report.get("rectification") in (None, strategy)
+        and (fps is None or meta.get("fps") == float(fps))
+    )
+
+
 def detect_recordings(
     recordings: list[str | pathlib.Path],
     out_dir: str | pathlib.Path,
@@ -379,27 +394,24 @@ def detect_recordings(
     different lengths, another process writing its clip) is reported under "failed" and
     the others go on; a detector that is not installed (`DetectorUnavailable`) stops the
     run. With `resume`, a recording whose clip is complete (its `meta.json` records a
-    detection by the same detectors) is skipped; an interrupted one continues from its
-    saved chunks either way. Other arguments: `detect_clip`'s.
+    detection by the same detectors, crop strategy and frame rate) is skipped; an
+    interrupted one continues from its saved chunks either way. Recordings are keyed by
+    folder name (`clips.named_folders`). Other arguments: `detect_clip`'s.
 
     Returns:
         {"detected": [{"clip", "sides", "frames"}], "skipped": [names], "failed": [{"clip", "error"}], "out": str}.
     """
     from .mediapipe import DetectorUnavailable
 
-    recordings = list(dict.fromkeys(pathlib.Path(r) for r in recordings))
-    names: dict[str, pathlib.Path] = {}
-    for recording in recordings:
-        if names.setdefault(recording.name, recording) != recording:
-            raise ValueError(f"two recordings share the name {recording.name!r}: {names[recording.name]} and {recording}; their clips would overwrite each other")
+    recordings = clips.named_folders(recordings, "recordings")
     out_dir = check_out_dir(out_dir)
     result: dict = {"detected": [], "skipped": [], "failed": [], "out": str(out_dir)}
     for recording in tqdm(recordings, desc="detect", unit="recording", disable=not progress or len(recordings) < 2):
         clip = out_dir / recording.name
-        if resume and (clip / "meta.json").is_file() and clips.read_meta(clip).get("detect", {}).get("detectors") == list(detectors):
-            result["skipped"].append(recording.name)
-            continue
         try:
+            if resume and _detected_as(clip, detectors, strategy, fps):
+                result["skipped"].append(recording.name)
+                continue
             left, right, rig = recording_views(recording)
             report = detect_clip(left, right, rig, clip, detectors=detectors, fps=fps, strategy=strategy, videos=videos,
                                  progress=progress and len(recordings) == 1, factories=factories)  # fmt: skip
