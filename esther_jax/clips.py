@@ -22,7 +22,6 @@ Every loader validates keys, shapes and values and says what is wrong with a fil
 
 import hashlib
 import math
-import os
 import pathlib
 import zipfile
 import zlib
@@ -330,21 +329,6 @@ def update_digest(digest, arrays: dict) -> None:
         a = np.ascontiguousarray(arrays[key])
         digest.update(f"{key}:{a.dtype.str}:{a.shape}".encode())
         digest.update(a.tobytes())
-
-
-def named_folders(folders: Iterable[str | pathlib.Path], what: str = "clip folders") -> list[pathlib.Path]:
-    """`folders` as absolute, normalised paths (symlinks kept: a link's name is its clip's
-    name), each once, in their order: what a batch whose outputs are keyed by folder
-    name (`OUT/<name>`) runs over. ValueError when a folder has no name (`/`) or two
-    folders share a name (their outputs would overwrite each other); `what` names them."""
-    unique = list(dict.fromkeys(pathlib.Path(os.path.abspath(f)) for f in folders))
-    names: dict[str, pathlib.Path] = {}
-    for folder in unique:
-        if not folder.name:
-            raise ValueError(f"{folder} has no folder name to key its output by; give a folder below it")
-        if names.setdefault(folder.name, folder) != folder:
-            raise ValueError(f"two {what} share the name {folder.name!r}: {names[folder.name]} and {folder}; their outputs would overwrite each other")
-    return unique
 
 
 def list_clips(root: str | pathlib.Path) -> list[pathlib.Path]:

@@ -27,7 +27,7 @@ import os
 import pathlib
 from collections.abc import Callable
 
-from . import clips
+from .files import named_folders
 
 USAGE_STATS = {"RAY_USAGE_STATS_ENABLED": "0"}
 """Ray's usage statistics, off in the driver and every worker."""
@@ -122,13 +122,13 @@ def map_clips(
     the batch function's result of no clip (`merge_results`).
 
     Raises ValueError before any work when Ray is not installed, the address has no
-    cluster, or two clips share a folder name (`clips.named_folders`); an exception the
+    cluster, or two clips share a folder name (`files.named_folders`); an exception the
     job itself raises (one the batch functions do not report per clip, e.g. a detector
     that is not installed) is raised here, the other tasks cancelled.
     """
     from tqdm import tqdm
 
-    clip_dirs = clips.named_folders(clip_dirs)
+    clip_dirs = named_folders(clip_dirs)
     if cpus_per_task < 1:
         raise ValueError(f"cpus_per_task must be >= 1, got {cpus_per_task}")
     ray = _import_ray()

@@ -47,7 +47,7 @@ from jaxtyping import ArrayLike, Float
 from . import clips, mano, metrics
 from . import model as M
 from . import train as train_lib
-from .files import check_out_dir, exclusive_lock, read_json, write_json
+from .files import check_out_dir, exclusive_lock, named_folders, read_json, write_json
 
 ENGINE_FORMAT = 1
 """Version of engine.json (its plan's fields)."""
@@ -236,7 +236,7 @@ def run_engine(
     shared by every round."""
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    clip_dirs = clips.named_folders(clip_dirs)
+    clip_dirs = named_folders(clip_dirs)
     if not clip_dirs:
         raise ValueError("no clip for the engine (clip folders with hands/<side>/keypoints.npz and crops/)")
     out = check_out_dir(out)

@@ -13,7 +13,7 @@ import pathlib
 import shutil
 import subprocess
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -139,3 +139,17 @@ def git_revision() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
 
+
+def named_folders(folders: Iterable[str | pathlib.Path], what: str = "clip folders") -> list[pathlib.Path]:
+    """`folders` as absolute, normalised paths (symlinks kept: a link's name is its clip's
+    name), each once, in their order: what a batch whose outputs are keyed by folder
+    name (`OUT/<name>`) runs over. ValueError when a folder has no name (`/`) or two
+    folders share a name (their outputs would overwrite each other); `what` names them."""
+    unique = list(dict.fromkeys(pathlib.Path(os.path.abspath(f)) for f in folders))
+    names: dict[str, pathlib.Path] = {}
+    for folder in unique:
+        if not folder.name:
+            raise ValueError(f"{folder} has no folder name to key its output by; give a folder below it")
+        if names.setdefault(folder.name, folder) != folder:
+            raise ValueError(f"two {what} share the name {folder.name!r}: {names[folder.name]} and {folder}; their outputs would overwrite each other")
+    return unique

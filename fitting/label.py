@@ -29,7 +29,7 @@ import numpy as np
 
 from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
-from esther_jax.files import check_out_dir, exclusive_lock, remove_stale_partials, write_json
+from esther_jax.files import check_out_dir, exclusive_lock, named_folders, remove_stale_partials, write_json
 
 from .pipeline import REFINE_CONFIG, LabelConfig, label_hands
 
@@ -228,7 +228,7 @@ def label_clips(
     if unknown:
         raise ValueError(f"models has unknown sides {sorted(unknown)}; use {clips.SIDES}")
     wanted = {side: _hand_model(side, models, model_sources)[1]["id"] for side in clips.SIDES}
-    clip_dirs = clips.named_folders(clip_dirs)
+    clip_dirs = named_folders(clip_dirs)
     if not clip_dirs:
         raise ValueError("no clip to label (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)")
     out_dir = check_out_dir(out_dir)

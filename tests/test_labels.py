@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from esther_jax import clips, mano
+from esther_jax.files import named_folders
 
 T = 5
 
@@ -65,11 +66,11 @@ def test_named_folders_keeps_each_folder_once_and_refuses_a_name_clash(tmp_path,
     (tmp_path / "b" / "clip").mkdir(parents=True)
     (tmp_path / "b" / "link").symlink_to(tmp_path / "a" / "clip")
     monkeypatch.chdir(tmp_path / "a")
-    same = clips.named_folders(["clip", tmp_path / "a" / "clip", "../a/clip", tmp_path / "b" / "link"])
+    same = named_folders(["clip", tmp_path / "a" / "clip", "../a/clip", tmp_path / "b" / "link"])
     assert same == [tmp_path / "a" / "clip", tmp_path / "b" / "link"]  # one folder three ways; a link keeps its own name
     monkeypatch.chdir(tmp_path / "a" / "clip")
-    assert clips.named_folders(["."]) == [tmp_path / "a" / "clip"]  # "." is the folder by its name
+    assert named_folders(["."]) == [tmp_path / "a" / "clip"]  # "." is the folder by its name
     with pytest.raises(ValueError, match="two recordings share the name 'clip'"):
-        clips.named_folders([tmp_path / "a" / "clip", tmp_path / "b" / "clip"], "recordings")
+        named_folders([tmp_path / "a" / "clip", tmp_path / "b" / "clip"], "recordings")
     with pytest.raises(ValueError, match="no folder name"):
-        clips.named_folders(["/"])
+        named_folders(["/"])

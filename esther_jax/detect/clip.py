@@ -36,7 +36,7 @@ from tqdm import tqdm
 from .. import clips
 from ..cameras import AbstractCamera, PinholeCamera, StereoRig, rig_name
 from ..crops import RECTIFICATION_STRATEGIES, Crop, box_outline, rectification_map, wide_pinhole
-from ..files import check_out_dir, exclusive_lock
+from ..files import check_out_dir, exclusive_lock, named_folders
 from .base import Candidates, HandDetection, KeypointDetector
 from .handedness import assign_hands
 
@@ -396,14 +396,14 @@ def detect_recordings(
     run. With `resume`, a recording whose clip is complete (its `meta.json` records a
     detection by the same detectors, crop strategy and frame rate) is skipped; an
     interrupted one continues from its saved chunks either way. Recordings are keyed by
-    folder name (`clips.named_folders`). Other arguments: `detect_clip`'s.
+    folder name (`files.named_folders`). Other arguments: `detect_clip`'s.
 
     Returns:
         {"detected": [{"clip", "sides", "frames"}], "skipped": [names], "failed": [{"clip", "error"}], "out": str}.
     """
     from .mediapipe import DetectorUnavailable
 
-    recordings = clips.named_folders(recordings, "recordings")
+    recordings = named_folders(recordings, "recordings")
     out_dir = check_out_dir(out_dir)
     result: dict = {"detected": [], "skipped": [], "failed": [], "out": str(out_dir)}
     for recording in tqdm(recordings, desc="detect", unit="recording", disable=not progress or len(recordings) < 2):
