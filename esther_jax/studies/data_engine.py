@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import clips
 from ..data import synth
-from ..engine import EngineConfig, label_errors_mm, labelling_cost, round_dir, run_engine
+from ..engine import EngineConfig, label_errors_mm, round_dir, run_engine
 from ..files import read_json, write_json
 from . import StudyScale, dataset, model_config, separated
 
