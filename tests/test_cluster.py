@@ -7,6 +7,8 @@ import os
 import pathlib
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -99,16 +101,51 @@ def test_a_worker_killed_mid_clip_loses_nothing(raw, one_process, local_cluster,
     _same_labels(one_process, out, [c.name for c in raw])
 
 
+def _waiting_for(lock: pathlib.Path) -> int:
+    """How many processes wait for the `flock` on the file `lock` (Linux's /proc/locks,
+    whose waiting requests are its '->' lines, named by device and inode)."""
+    st = lock.stat()
+    ident = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    lines = pathlib.Path("/proc/locks").read_text().splitlines()
+    return sum(1 for line in lines if " -> " in line and line.split()[-3] == ident)
+
+
 def test_two_drivers_on_one_folder_lose_and_duplicate_nothing(raw, one_process, local_cluster, tmp_path):
+    """Two drivers on one output folder at once (a subprocess `esther label --resume --ray` and
+    `map_clips` in a thread here), made to meet on one clip: its lock is held (as a third
+    writer in the middle of it would hold it) until both drivers' tasks are seen waiting for
+    it; then one labels it and the other skips it, and every clip is labelled once."""
+    if not pathlib.Path("/proc/locks").is_file():
+        pytest.skip("needs Linux's /proc/locks to see the drivers wait on one clip")
     out = tmp_path / "labels"
+    out.mkdir()
+    lock = out / f".{raw[0].name}.lock"
+    here: dict = {}
+
+    def second_driver():
+        try:
+            here.update(cluster.map_clips(functools.partial(fitting.label_clips, out_dir=out, resume=True), raw, address=local_cluster,
+                                          progress=False))  # fmt: skip
+        except BaseException as err:  # noqa: BLE001 - reported by the test below
+            here["error"] = err
+
     command = [sys.executable, "-m", "esther_jax.cli", "label", *map(str, raw), "--out", str(out), "--resume", "--ray", local_cluster]
-    other = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, **cluster.USAGE_STATS})
-    # this process is the second driver, at the same time
-    here = cluster.map_clips(functools.partial(fitting.label_clips, out_dir=out, resume=True), raw, address=local_cluster, progress=False)
+    with exclusive_lock(lock):
+        other = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, **cluster.USAGE_STATS})
+        thread = threading.Thread(target=second_driver)
+        thread.start()
+        deadline = time.monotonic() + 300
+        while _waiting_for(lock) < 2:
+            assert other.poll() is None and thread.is_alive(), "a driver ended before it reached the held clip"
+            assert time.monotonic() < deadline, f"{_waiting_for(lock)} of the 2 drivers' tasks wait for the held clip after 300 s"
+            time.sleep(0.2)
+    thread.join(timeout=600)
     stdout, stderr = other.communicate(timeout=600)
     assert other.returncode == 0, stderr[-2000:]
+    assert "error" not in here, here.get("error")
     there = int(stdout.split("labelled ")[1].split(" clips")[0])
     assert not here["failed"] and len(here["labelled"]) + there == len(raw), (here, stdout)  # each clip labelled once, by one driver
+    assert len(here["labelled"]) + len(here["skipped"]) == there + int(stdout.split("skipped ")[1].split(",")[0]) == len(raw), (here, stdout)
     _same_labels(one_process, out, [c.name for c in raw])
 
 
