@@ -331,13 +331,17 @@ def palm_pose(
 
 
 def initialise(
-    model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas: Float[Array, "10"], previous: "Initial | None" = None
-) -> Initial:
+    model: mano.ManoModel, rig: StereoRig, evidence: Evidence, betas: Float[Array, "10"], previous: "Initial | None" = None,
+    *, triangulated_start: bool = False,
+) -> Initial:  # fmt: skip
     """Wrist translation and orientation per frame (see the module docstring).
 
     `previous` (an initialisation with another shape, e.g. before the shape lock) is
     refined instead of searched again: the palm pose starts from its orientation and
-    wrist only."""
+    wrist only; with `triangulated_start` also from the triangulated palm's rigid fit
+    where a frame has one, the lower cost winning (a network's prediction as `previous`:
+    its palm may sit on the wrong one of the two mirror-image poses a nearly planar palm
+    admits, which refining it alone cannot leave)."""
     X = evidence.joints3d
     valid = evidence.joints3d_valid
     dtype = X.dtype
@@ -358,6 +362,10 @@ def initialise(
         refine = jax.vmap(functools.partial(palm_pose, search=False), in_axes=(None, 0, 0, None, 0, 0, 0))
         R_prev = axis_angle_to_matrix(previous.global_orient)
         pose = refine(rig, evidence.uv, evidence.weight, rest, R_prev, previous.transl, jnp.ones_like(tri_seen))
+        if triangulated_start:
+            other = refine(rig, evidence.uv, evidence.weight, rest, R_tri, wrist_tri, tri_seen)
+            better = tri_seen & (other.residual_rad < pose.residual_rad)
+            pose = jax.tree.map(lambda a, b: jnp.where(better.reshape(better.shape + (1,) * (a.ndim - 1)), b, a), pose, other)
     pose_ok = (pose.points >= MIN_PALM_POINTS) & (pose.residual_rad <= MAX_PALM_RESIDUAL_RAD)
     tri_ok = valid[:, 0]
     mono_ok = pose_ok & ~tri_ok

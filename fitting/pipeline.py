@@ -13,8 +13,9 @@ the persistent compilation cache (`esther_jax.enable_compilation_cache`).
 
 `refine` is the same composition started from a network's prediction (the data engine's
 model-assisted labelling): the prediction replaces the initialisation (the palm pose is
-refined from it, not searched) and starts the shape lock (`REFINE_CONFIG`); the
-filter and quality record are the teacher's.
+refined from it, or from the triangulated palm where that reprojects better, not
+searched; the wrist is the evidence's where a frame has one) and starts the shape lock,
+with fewer solver steps (`REFINE_CONFIG`); the filter and quality record are the teacher's.
 
 Frames seen by both views are stereo frames; frames seen by one view are labelled too
 (monocular frames: depth from the locked hand size, the priors and the neighbouring
@@ -165,6 +166,21 @@ def _prediction_fits(prediction: mano.ManoParams, observed) -> stages.Fits:
 
 
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
+def _refine_start(predicted: stages.Fits, init: ev.Initial) -> stages.Fits:
+    """Refine's starting fits: the prediction's finger pose and shape; per frame its palm
+    pose refined against the 2D palm (`evidence.initialise` from the prediction) where the
+    palm is seen, and the evidence's wrist (triangulated, else the refined palm's) where
+    the frame has one; the prediction's own elsewhere. A network's wrist is its weakest
+    output (tens of millimetres off), and the shape lock started from it settled in
+    local fits that passed the filter (docs/studies/data_engine.md)."""
+    known = init.wrist_triangulated | init.wrist_monocular
+    return stages.Fits(
+        jnp.where(init.palm_seen[:, None], init.global_orient, predicted.global_orient), predicted.hand_pose,
+        jnp.where(known[:, None], init.transl, predicted.transl), predicted.betas, predicted.converged,
+    )  # fmt: skip
+
+
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _prepare(model, rig, uv, conf, box, box_score):
     fused = fusion.fuse(uv, conf, box, box_score)
     evidence = ev.prefilter(rig, fused, ev.template_bones(model))
@@ -185,10 +201,10 @@ def _with_pose_prior(problem: Problem, pose_prior: mano.GMMPosePrior | None, mod
     return eqx.tree_at(lambda p: p.pose_prior, problem, learned)
 
 
-def _initial(model, rig, evidence, betas, mono_orient, mono_has, previous) -> ev.Initial:
+def _initial(model, rig, evidence, betas, mono_orient, mono_has, previous, triangulated_start: bool = False) -> ev.Initial:
     """Each frame's palm pose (`evidence.initialise`), with the monocular fit's orientation
     where a frame has one."""
-    init = ev.initialise(model, rig, evidence, betas, previous)
+    init = ev.initialise(model, rig, evidence, betas, previous, triangulated_start=triangulated_start)
     return ev.Initial(
         init.transl, jnp.where(mono_has[:, None], mono_orient, init.global_orient),
         init.wrist_triangulated, init.wrist_monocular, init.palm_seen,
@@ -211,6 +227,13 @@ def _restart(model, rig, evidence, betas, mono_orient, mono_has, previous):
     3.7-4.9 s with the search's options, its run time the same within noise. The starting
     pose of `_start` is not recomputed: the frame fits start from the shape lock's."""
     return _initial(model, rig, evidence, betas, mono_orient, mono_has, previous)
+
+
+@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
+def _predicted_start(model, rig, evidence, betas, mono_orient, mono_has, predicted):
+    """Refine's initialisation: each frame's palm pose refined from the prediction's, or
+    from the triangulated palm's rigid fit where that reprojects better (`evidence.initialise`)."""
+    return _initial(model, rig, evidence, betas, mono_orient, mono_has, predicted, triangulated_start=True)
 
 
 @persistent_jit(static_argnames=("min_joints",), compiler_options=CPU_QUICK_COMPILE)
@@ -259,12 +282,18 @@ def label_hand(
 
 REFINE_CONFIG = LabelConfig(shape_lock_rounds=2)
 """`refine`'s default: the teacher's stages and step counts with a second shape-lock
-round. A prediction's pose is noisier frame to frame than the teacher's start (the mean
-pose), and one round left its shape off: on a clean synthetic clip, from ground truth
-perturbed by 0.15 rad per joint, 3 cm and 0.5 per beta, P-MPJPE 2.2 mm with one round,
-1.1 with two (the teacher's own 1.2). `benchmarks/teacher.py --section refine` measures it
-against the teacher: on 4 clips of 64 frames, 2.2 mm against the teacher's 4.2 at 1.2x its
-throughput (short of the data engine's 5x: fewer steps cost accuracy, 7 mm with 3 steps)."""
+round, which a gross prediction needs (tests/test_refine.py: every finger curled where
+the hand is open ends at P-MPJPE 3.8 mm after one round, under 3 mm after two).
+`python benchmarks/teacher.py --section refine` measures it against the teacher on the
+same 8 hands (4 clips of 64 frames), started from ground truth perturbed as a network's
+prediction: "close" (0.15 rad per joint, 3 cm, 0.5 per beta; the start at P-MPJPE
+18.6 mm, wrist 48 mm) and "far" (0.45 rad orientation, 0.3 rad per finger joint, 10 cm,
+1.0 per beta; 48.6 mm, wrist 159 mm, as this project's CPU-trained networks). On the
+frames both accept, P-MPJPE 2.1 mm (close) and 2.3 mm (far) against the teacher's 4.2
+and 4.0, no accepted label worse than 15 mm (the teacher's: 28), at about its
+throughput. Fewer steps buy throughput at the price of accuracy: one round 2.2 and
+2.5 mm at 1.3x; 8 shape-lock steps and 3 per fit 2.5 and 3.9 mm at 1.9x; 4 and 2,
+2.8 and 6.0 mm at 2.5x (the data engine's 5x is not reached at the teacher's accuracy)."""
 
 
 def refine(
@@ -275,9 +304,10 @@ def refine(
     model-assisted labelling, "Model-Assisted Labeling and Iterative Enhancement"): the
     teacher's own stages and objectives against the clip's 2D keypoints in every view that
     sees the hand (one view is enough), under the pose prior and the temporal terms,
-    started from the prediction instead of the teacher's initialisation (its palm pose
-    refined, not searched; its finger pose, not the mean pose), then the teacher's
-    reprojection filter and label quality.
+    started from the prediction instead of the teacher's initialisation (`_refine_start`:
+    its finger pose and shape, not the mean ones; its palm pose refined, not searched,
+    unless the triangulated palm's reprojects better; the wrist triangulated where both
+    views see it), then the teacher's reprojection filter and label quality.
 
     Args:
         model, rig, keypoints, fps, shape, pose_prior: as in `label_hand`.
@@ -338,9 +368,10 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction
         start = stages.start_fits(init, pose0, zeros)
     else:  # refine: the prediction starts every frame, its palm pose refined, not searched
         padded = {k: jnp.asarray(pad_edge(v), dtype) for k, v in prediction.items()}
-        start = _prediction_fits(mano.ManoParams(padded["global_orient"], padded["hand_pose"], padded["betas"], padded["transl"]), observed)
-        previous = ev.Initial(start.transl, start.global_orient, *(jnp.zeros(L, bool),) * 3)
-        init = _restart(model, rig, evidence, start.betas[0], dev["mono_orient"], mono_has, previous)
+        predicted = _prediction_fits(mano.ManoParams(padded["global_orient"], padded["hand_pose"], padded["betas"], padded["transl"]), observed)
+        previous = ev.Initial(predicted.transl, predicted.global_orient, *(jnp.zeros(L, bool),) * 3)
+        init = _predicted_start(model, rig, evidence, predicted.betas[0], dev["mono_orient"], mono_has, previous)
+        start = _refine_start(predicted, init)
     data = stages.frame_data(evidence, init, problem)
     solver = dict(steps=config.steps, solver=config.solver)
     lock = stages.shape_lock(
