@@ -15,7 +15,7 @@ the persistent compilation cache (`esther_jax.enable_compilation_cache`).
 model-assisted labelling): the prediction replaces the initialisation (the palm pose is
 refined from it, or from the triangulated palm where that reprojects better, not
 searched; the wrist is the evidence's where a frame has one) and starts the shape lock,
-with fewer solver steps (`REFINE_CONFIG`); the filter and quality record are the teacher's.
+with a second shape-lock round (`REFINE_CONFIG`); the filter and quality record are the teacher's.
 
 Frames seen by both views are stereo frames; frames seen by one view are labelled too
 (monocular frames: depth from the locked hand size, the priors and the neighbouring
@@ -167,9 +167,9 @@ def _prediction_fits(prediction: mano.ManoParams, observed) -> stages.Fits:
 
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _refine_start(predicted: stages.Fits, init: ev.Initial) -> stages.Fits:
-    """Refine's starting fits: the prediction's finger pose and shape; per frame its palm
-    pose refined against the 2D palm (`evidence.initialise` from the prediction) where the
-    palm is seen, and the evidence's wrist (triangulated, else the refined palm's) where
+    """Refine's starting fits: the prediction's finger pose and shape; per frame the palm
+    pose fitted to the 2D palm from the prediction's or the triangulated palm's
+    (`_predicted_start`) where the palm is seen, and the evidence's wrist (triangulated, else the refined palm's) where
     the frame has one; the prediction's own elsewhere. A network's wrist is its weakest
     output (tens of millimetres off), and the shape lock started from it settled in
     local fits that passed the filter (docs/studies/data_engine.md)."""
