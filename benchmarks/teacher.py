@@ -36,7 +36,8 @@ side by side, with the public `fitting` API only.
    (`objectives.frame_normal_equations`), its closed-form reprojection part, and the
    Cholesky solve, each timed alone; the two normal equations' agreement.
 5. Refine (`--section refine`, issue 49): `fitting.refine` from each hand's ground truth
-   perturbed as a poor network's prediction against the teacher on the same hands:
+   perturbed as a network's prediction (`START_NOISE`: a close and a far start) against
+   the teacher on the same hands:
    hand-frames/s, coverage, P-MPJPE (also on the frames both accept), accepted labels
    worse than 15 mm; target: refine >= 5x the teacher's throughput.
 6. Pose priors (`--section prior`, issue 49): the learned prior (`mano.GMMPosePrior`)
@@ -504,7 +505,7 @@ def refine_section(clips: int, frames: int, seed: int = 2000):
         both = [t["valid"] & r["valid"] & t["onscreen"] for t, r in zip(teacher, refined)]
         start_rows = [start_errors(side, s, c.gt[side]) for (c, side), s in zip(hands, starts)]
         on_screen = lambda k: np.mean(np.concatenate([h[k][c.gt[side]["onscreen"]] for h, (c, side) in zip(start_rows, hands)]))  # noqa: E731
-        print(f"{'start':<8} {'':>8} hand-frames/s   {'':>15}P-MPJPE {on_screen('p_mpjpe'):5.2f} mm   wrist {on_screen('wrist'):6.2f} mm (on-screen frames)")
+        print(f"{'start':<8} the perturbed ground truth itself, on-screen frames: P-MPJPE {on_screen('p_mpjpe'):5.2f} mm   wrist {on_screen('wrist'):6.2f} mm")
         for name, rows, seconds in (("teacher", teacher, teacher_s), ("refine", refined, refine_s)):
             a = accepted(rows, both)
             print(f"{name:<8} {total / seconds:8.0f} hand-frames/s   coverage {a['coverage']:6.1%}   "
