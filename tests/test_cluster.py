@@ -132,7 +132,7 @@ def test_two_drivers_on_one_folder_lose_and_duplicate_nothing(raw, one_process, 
     command = [sys.executable, "-m", "esther_jax.cli", "label", *map(str, raw), "--out", str(out), "--resume", "--ray", local_cluster]
     with exclusive_lock(lock):
         other = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, **cluster.USAGE_STATS})
-        thread = threading.Thread(target=second_driver)
+        thread = threading.Thread(target=second_driver, daemon=True)  # a failed test does not wait for it
         thread.start()
         deadline = time.monotonic() + 300
         while _waiting_for(lock) < 2:
