@@ -101,14 +101,13 @@ def main() -> None:
 
     s = one / args.clips
     print(f"  per clip: one process {s:.2f} s")
-    for what, seconds, tasks in rows[1:]:
-        workers = int(what.split()[1])
+    split = []  # per Ray row: a worker's steady clip and the job's fixed cost
+    for (what, seconds, tasks), workers in zip(rows[1:], (1, 2)):
         c = statistics.median(tasks)  # a worker's first task also loads the programs: the median is its steady clip
-        fixed = max(seconds - sum(min(t, c) for t in tasks) / workers, 0.0)
-        print(f"  {what}: a clip {c:.2f} s on a worker (first task {tasks[0]:.2f} s), fixed cost {fixed:.1f} s a job; "
-              f"faster than one process past {_break_even(fixed, c, workers, s)}")  # fmt: skip
-    c = statistics.median(rows[1][2])
-    fixed = max(rows[1][1] - sum(min(t, c) for t in rows[1][2]), 0.0)
+        split.append((c, max(seconds - sum(min(t, c) for t in tasks) / workers, 0.0)))
+        print(f"  {what}: a clip {c:.2f} s on a worker (first task {tasks[0]:.2f} s), fixed cost {split[-1][1]:.1f} s a job; "
+              f"faster than one process past {_break_even(split[-1][1], c, workers, s)}")  # fmt: skip
+    c, fixed = split[0]  # one worker's, undisturbed by a second on the same cores
     for workers in (16, 64):
         print(f"  projected, {workers} such workers: {60.0 * workers / c:.0f} clips/min steady; "
               f"faster than this machine's one process past {_break_even(fixed, c, workers, s)}")  # fmt: skip

@@ -166,21 +166,6 @@ def _prediction_fits(prediction: mano.ManoParams, observed) -> stages.Fits:
 
 
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
-def _refine_start(predicted: stages.Fits, init: ev.Initial) -> stages.Fits:
-    """Refine's starting fits: the prediction's finger pose and shape; per frame the palm
-    pose fitted to the 2D palm from the prediction's or the triangulated palm's
-    (`_predicted_start`) where the palm is seen, and the evidence's wrist (triangulated, else the refined palm's) where
-    the frame has one; the prediction's own elsewhere. A network's wrist is its weakest
-    output (tens of millimetres off), and the shape lock started from it settled in
-    local fits that passed the filter (docs/studies/data_engine.md)."""
-    known = init.wrist_triangulated | init.wrist_monocular
-    return stages.Fits(
-        jnp.where(init.palm_seen[:, None], init.global_orient, predicted.global_orient), predicted.hand_pose,
-        jnp.where(known[:, None], init.transl, predicted.transl), predicted.betas, predicted.converged,
-    )  # fmt: skip
-
-
-@persistent_jit(compiler_options=CPU_QUICK_COMPILE)
 def _prepare(model, rig, uv, conf, box, box_score):
     fused = fusion.fuse(uv, conf, box, box_score)
     evidence = ev.prefilter(rig, fused, ev.template_bones(model))
@@ -230,10 +215,23 @@ def _restart(model, rig, evidence, betas, mono_orient, mono_has, previous):
 
 
 @persistent_jit(compiler_options=CPU_QUICK_COMPILE)
-def _predicted_start(model, rig, evidence, betas, mono_orient, mono_has, predicted):
-    """Refine's initialisation: each frame's palm pose refined from the prediction's, or
-    from the triangulated palm's rigid fit where that reprojects better (`evidence.initialise`)."""
-    return _initial(model, rig, evidence, betas, mono_orient, mono_has, predicted, triangulated_start=True)
+def _predicted_start(model, rig, evidence, mono_orient, mono_has, predicted: stages.Fits) -> tuple[ev.Initial, stages.Fits]:
+    """Refine's initialisation and starting fits. Each frame's palm pose is refined from
+    the prediction's, or from the triangulated palm's rigid fit where that reprojects
+    better (`evidence.initialise`). The fits keep the prediction's finger pose and shape;
+    per frame they take that palm pose where the palm is seen, and the evidence's wrist
+    (triangulated, else the refined palm's) where the frame has one; the prediction's own
+    elsewhere. A network's wrist is its weakest output (tens of millimetres off), and the
+    shape lock started from it settled in local fits that passed the filter
+    (docs/benchmarks.md, refinement against the teacher)."""
+    previous = ev.Initial(predicted.transl, predicted.global_orient, *(jnp.zeros(predicted.transl.shape[0], bool),) * 3)
+    init = _initial(model, rig, evidence, predicted.betas[0], mono_orient, mono_has, previous, triangulated_start=True)
+    known = init.wrist_triangulated | init.wrist_monocular
+    start = stages.Fits(
+        jnp.where(init.palm_seen[:, None], init.global_orient, predicted.global_orient), predicted.hand_pose,
+        jnp.where(known[:, None], init.transl, predicted.transl), predicted.betas, predicted.converged,
+    )  # fmt: skip
+    return init, start
 
 
 @persistent_jit(static_argnames=("min_joints",), compiler_options=CPU_QUICK_COMPILE)
@@ -304,7 +302,7 @@ def refine(
     model-assisted labelling, "Model-Assisted Labeling and Iterative Enhancement"): the
     teacher's own stages and objectives against the clip's 2D keypoints in every view that
     sees the hand (one view is enough), under the pose prior and the temporal terms,
-    started from the prediction instead of the teacher's initialisation (`_refine_start`:
+    started from the prediction instead of the teacher's initialisation (`_predicted_start`:
     its finger pose and shape, not the mean ones; its palm pose refined, not searched,
     unless the triangulated palm's reprojects better; the wrist triangulated where both
     views see it), then the teacher's reprojection filter and label quality.
@@ -369,9 +367,7 @@ def _label_hand(model, rig, keypoints, fps, config, monocular, shape, prediction
     else:  # refine: the prediction starts every frame, its palm pose refined, not searched
         padded = {k: jnp.asarray(pad_edge(v), dtype) for k, v in prediction.items()}
         predicted = _prediction_fits(mano.ManoParams(padded["global_orient"], padded["hand_pose"], padded["betas"], padded["transl"]), observed)
-        previous = ev.Initial(predicted.transl, predicted.global_orient, *(jnp.zeros(L, bool),) * 3)
-        init = _predicted_start(model, rig, evidence, predicted.betas[0], dev["mono_orient"], mono_has, previous)
-        start = _refine_start(predicted, init)
+        init, start = _predicted_start(model, rig, evidence, dev["mono_orient"], mono_has, predicted)
     data = stages.frame_data(evidence, init, problem)
     solver = dict(steps=config.steps, solver=config.solver)
     lock = stages.shape_lock(
