@@ -225,7 +225,7 @@ def _label_parser(commands) -> None:
     label = commands.add_parser("label", help="label clip folders with the teacher (metric MANO from stereo 2D keypoints)")
     label.add_argument("clips", nargs="+", help="clip folders (or folders of clips)")
     label.add_argument("--out", required=True, help="output folder (<clip>/hands/<side>/labels.npz, quality.json)")
-    label.add_argument("--resume", action="store_true", help="skip clips whose labels are complete")
+    label.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and made the same way (models, pose prior, method revision and settings)")
     label.add_argument("--reject", help="human-review reject list: lines 'clip,side,frame'")
     label.add_argument("--review", action="store_true", help="also write a contact sheet of flagged frames per hand")
     label.add_argument(
@@ -307,7 +307,7 @@ def _refine_parser(commands) -> None:
     refine.add_argument("--predictions", metavar="DIR", help="the network's predictions (esther predict --out; default OUT/.predictions): "
                                                              "written there with --model, else read from there")  # fmt: skip
     refine.add_argument("--out", required=True, help="output folder, the teacher's format (<clip>/hands/<side>/labels.npz, quality.json)")
-    refine.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and refined from the same prediction")
+    refine.add_argument("--resume", action="store_true", help="skip clips whose labels are complete and refined from the same prediction the same way (method revision and settings)")
     _ray_flag(refine)
     refine.add_argument("--pose-prior", metavar="FILE", help="a learned pose prior (esther prior --out FILE) in place of the hand model's PCA prior (the joint limits stay)")
     refine.set_defaults(run=_refine)

@@ -35,6 +35,9 @@ from .pipeline import LabelConfig as LabelConfig
 from .pipeline import label_hand as label_hand
 from .pipeline import label_hands as label_hands
 from .pipeline import REFINE_CONFIG as REFINE_CONFIG
+from .pipeline import REFINE_REVISION as REFINE_REVISION
+from .pipeline import TEACHER_REVISION as TEACHER_REVISION
+from .pipeline import method_record as method_record
 from .pipeline import refine as refine
 from .priors import MotionPrior as MotionPrior
 from esther_jax.mano import PosePrior as PosePrior

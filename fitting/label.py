@@ -13,6 +13,10 @@ official `MANO_RIGHT.pkl` / `MANO_LEFT.pkl`), and record which (`mano.model_id`)
 keypoints, and the labels record the prediction they grew from (`meta.json`
 `"prediction"`: its folder, its `labelled_by`, the sha256 of its labels arrays), so
 `--resume` redoes a clip whose prediction changed (a later round's network).
+
+Labels also record the method that made them (`meta.json` `"method"`: teacher or refine,
+the algorithm's revision, `pipeline.TEACHER_REVISION` / `REFINE_REVISION`, and every
+`LabelConfig` setting), and `--resume` keeps only labels made the way this run makes them.
 """
 
 import functools
@@ -31,7 +35,7 @@ from esther_jax import clips, mano
 from esther_jax.cameras import StereoRig
 from esther_jax.files import check_out_dir, exclusive_lock, named_folders, remove_stale_partials, write_json
 
-from .pipeline import REFINE_CONFIG, LabelConfig, label_hands
+from .pipeline import REFINE_CONFIG, LabelConfig, label_hands, method_record
 
 
 def read_reject_list(path: str | pathlib.Path) -> frozenset[tuple[str, str, int]]:
@@ -108,6 +112,7 @@ def _label_locked(clip_dir, out_dir, config, rejects, models, model_sources, pre
         recorded = {side: hand["mano_model"] for side, hand in summary["hands"].items()}
         made = {"labelled_by": "esther teacher"} if origin is None else {"labelled_by": "esther refine", "prediction": origin}
         made["pose_prior"] = pose_prior_record(pose_prior)
+        made["method"] = method_record(config, predictions is not None)
         clips.write_meta(tmp, **{**meta, **made, "mano_model": recorded, "source_clip": source})
         if final.exists():
             shutil.rmtree(final)
@@ -213,7 +218,10 @@ def label_clips(
     prediction, and labels of the teacher are not kept for it (nor refined ones without).
     `pose_prior`: a learned pose prior in the PCA prior's place (`pipeline.label_hand`'s),
     recorded in each clip's `meta.json` (`"pose_prior"`); `resume` keeps only labels made
-    under the same prior.
+    under the same prior. Each clip's `meta.json` records the method too (`"method"`:
+    teacher or refine, its revision, `config`: `pipeline.method_record`); `resume` redoes
+    labels made by another revision of the algorithm or with other settings, and labels
+    that record no method (made before revisions were recorded).
 
     Safe to run twice at once on one `out_dir`: each clip is labelled under its own lock;
     a clip another process is labelling is put back and taken last (waiting for the
@@ -233,6 +241,7 @@ def label_clips(
         raise ValueError("no clip to label (a clip folder holds rig.json, meta.json and hands/<side>/keypoints.npz)")
     out_dir = check_out_dir(out_dir)
     prior = pose_prior_record(pose_prior)
+    method = method_record(config, predictions is not None)
     started = time.time()
     done, skipped, failed = [], [], []
     frames, seconds = 0, 0.0
@@ -245,7 +254,7 @@ def label_clips(
             if not locked:
                 return False
             finished = (_labelled_with(meta_path, wanted) and _made_from(meta_path, clip) and _refined_from(meta_path, clip, predictions)
-                        and _recorded(meta_path, "pose_prior") == prior)  # fmt: skip
+                        and _recorded(meta_path, "pose_prior") == prior and _recorded(meta_path, "method") == method)  # fmt: skip
             if finished and (resume or (wait and meta_path.stat().st_mtime >= started)):
                 skipped.append(clip.name)  # done before (--resume), or by the other process just now
                 return True

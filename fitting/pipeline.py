@@ -80,6 +80,25 @@ class LabelConfig:
             raise ValueError("LabelConfig: steps, shape_lock_steps, shape_lock_rounds, shape_lock_frames, window and stride must be >= 1")
 
 
+TEACHER_REVISION = 1
+"""Revision of the teacher's algorithm (`label_hand`): raised by any change that alters the
+labels it makes from the same input. Labels record it (`method_record`), and
+`label_clips(resume=True)` redoes labels of another revision."""
+
+REFINE_REVISION = 2
+"""Revision of `refine`'s algorithm, as `TEACHER_REVISION` is the teacher's (2: its start
+from the evidence's palm pose and wrist, 2026-12-07; 1: from the prediction's)."""
+
+
+def method_record(config: LabelConfig, refined: bool) -> dict:
+    """What labels record of the method that made them (`meta.json` `"method"`): the
+    teacher or refine, that algorithm's revision and every setting of `config` (its
+    weights included), so labels made another way are told apart from this run's."""
+    settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name != "weights"}
+    settings["weights"] = {name: float(value) for name, value in vars(config.weights).items()}
+    return {"name": "refine" if refined else "teacher", "revision": REFINE_REVISION if refined else TEACHER_REVISION, "config": settings}
+
+
 def bucket_length(frames: int) -> int:
     """Padded clip length: a multiple of 32 (one compiled program per bucket)."""
     return max(BUCKET, -(-frames // BUCKET) * BUCKET)

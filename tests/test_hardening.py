@@ -22,6 +22,7 @@ import pytest
 
 from esther_jax import cameras, cli, clips, mano
 from esther_jax.eval import evaluate_folders
+import fitting
 from fitting import label as label_module
 
 T = 8
@@ -264,6 +265,27 @@ def test_resume_redoes_labels_of_another_clip_with_the_same_name(tmp_path, fake_
     assert [s["clip"] for s in redone["labelled"]] == ["clip_x"] and not redone["skipped"]
     meta = json.loads((tmp_path / "labels" / "clip_x" / "meta.json").read_text())
     assert meta["source_clip"]["digest"] == clips.clip_digest(clip)
+
+
+def test_resume_redoes_labels_made_by_another_method(tmp_path, fake_teacher):
+    clip = _tiny_clip(tmp_path / "clips" / "clip_x", seed=0)
+    out = tmp_path / "labels"
+    label_module.label_clips([clip], out, progress=False)
+    meta_path = out / "clip_x" / "meta.json"
+    assert json.loads(meta_path.read_text())["method"] == fitting.method_record(fitting.LabelConfig(), refined=False)
+    # other settings: redone, and the labels record the new ones
+    other = fitting.LabelConfig(steps=3)
+    redone = label_module.label_clips([clip], out, resume=True, progress=False, config=other)
+    assert [s["clip"] for s in redone["labelled"]] == ["clip_x"] and not redone["skipped"]
+    assert json.loads(meta_path.read_text())["method"]["config"]["steps"] == 3
+    assert label_module.label_clips([clip], out, resume=True, progress=False, config=other)["skipped"] == ["clip_x"]
+    # labels of an older revision of the algorithm, or recording none (made before
+    # revisions were recorded): redone
+    for edit in (lambda m: m["method"].update(revision=fitting.TEACHER_REVISION - 1), lambda m: m.pop("method")):
+        _edit_json(meta_path, edit)
+        again = label_module.label_clips([clip], out, resume=True, progress=False, config=other)
+        assert [s["clip"] for s in again["labelled"]] == ["clip_x"] and not again["skipped"]
+        assert json.loads(meta_path.read_text())["method"] == fitting.method_record(other, refined=False)
 
 
 _WORKER = textwrap.dedent(

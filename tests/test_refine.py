@@ -111,6 +111,7 @@ def test_refine_cli_writes_the_teachers_format_with_the_predictions_origin(clip,
     assert cli.main(["refine", str(one_hand), "--predictions", str(predictions), "--out", str(out)]) == 0
     meta = json.loads((out / "clip_a" / "meta.json").read_text())
     assert meta["labelled_by"] == "esther refine" and meta["source_clip"]["digest"] == clips.clip_digest(one_hand)
+    assert meta["method"] == fitting.method_record(fitting.REFINE_CONFIG, refined=True) and meta["method"]["revision"] == fitting.REFINE_REVISION
     assert meta["prediction"]["labelled_by"] == "a test's network" and meta["prediction"]["folder"] == str(predictions.resolve())
     quality = json.loads((out / "clip_a" / "hands" / "right" / "quality.json").read_text())
     assert quality["initialised_from"] == "prediction"
