@@ -304,11 +304,12 @@ the hand is open ends at P-MPJPE 3.8 mm after one round, under 3 mm after two).
 `python benchmarks/teacher.py --section refine` measures it against the teacher on the
 same 8 hands (4 clips of 64 frames), started from ground truth perturbed as a network's
 prediction: "close" (0.15 rad per joint, 3 cm, 0.5 per beta; the start at P-MPJPE
-18.6 mm, wrist 48 mm) and "far" (0.45 rad orientation, 0.3 rad per finger joint, 10 cm,
-1.0 per beta; 48.6 mm, wrist 159 mm, as this project's CPU-trained networks). On the
-frames both accept, P-MPJPE 2.1 mm (close) and 2.3 mm (far) against the teacher's 4.2
-and 4.0, no accepted label worse than 15 mm (the teacher's: 28), at about its
-throughput. Fewer steps buy throughput at the price of accuracy: one round 2.2 and
+18.6 mm, wrist 48 mm), "far" (0.45 rad orientation, 0.3 rad per finger joint, 10 cm,
+1.0 per beta; 48.6 mm, wrist 159 mm) and "network" (the mean fingers and shape, as this
+project's CPU-trained networks predict). On the esther rig, on the frames both accept,
+P-MPJPE 2.1 mm (close) and 2.3 mm (far) against the teacher's 4.2 and 4.0, no accepted
+label worse than 15 mm (the teacher's: 28), at about its throughput; on hot3d_aria's,
+from the far start, 2.0 mm worse than the teacher (docs/benchmarks.md). Fewer steps buy throughput at the price of accuracy: one round 2.2 and
 2.5 mm at 1.3x; 8 shape-lock steps and 3 per fit 2.5 and 3.9 mm at 1.9x; 4 and 2,
 2.8 and 6.0 mm at 2.5x (the data engine's 5x is not reached at the teacher's accuracy)."""
 
